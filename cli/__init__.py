@@ -1,0 +1,1 @@
+"""The ``sekd`` command line (installed as ``sekd_sfm.cli``)."""

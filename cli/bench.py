@@ -1,0 +1,52 @@
+"""``sekd bench``: speed now; the paper's evaluations join this group."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from sekd_sfm.bench.speed import benchmark_speed
+from sekd_sfm.runtime import shared_dir
+from sekd_sfm.weights import load_model
+
+from .options import weights_option
+
+
+@click.group()
+def bench() -> None:
+    """Benchmarks: every figure quoted in the README comes from one of these commands."""
+
+
+@bench.command()
+@click.option("--images", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Folder of images (default: $SEKD_SHARED/data/train/coco).")
+@click.option("--count", type=click.IntRange(min=1), default=8, show_default=True, help="Images per method.")
+@click.option("--repeats", type=click.IntRange(min=1), default=2, show_default=True, help="Timed passes over them.")
+@click.option("--height", type=int, default=480, show_default=True)
+@click.option("--width", type=int, default=640, show_default=True)
+@click.option("--max-keypoints", type=int, default=2000, show_default=True)
+@click.option("--num-threads", type=int, default=None, help="CPU threads (default: all cores).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the results as JSON.")
+@weights_option
+def speed(images, count, repeats, height, width, max_keypoints, num_threads, output, weights) -> None:
+    """Images/s at 480x640 for plain fp32 SEKD, the fast path, and OpenCV SIFT, in one run.
+
+    \b
+    Example:
+      sekd bench speed --weights ../shared/weights/sekd/sekd.pth
+    """
+    net, _ = load_model(weights)
+    result = benchmark_speed(net, images or shared_dir() / "data/train/coco", count, height, width, repeats,
+                             max_keypoints, num_threads)
+    click.echo(f"{result['images']} images at {height}x{width}, {result['threads']} threads, "
+               f"{result['gflop_per_image']:.1f} GFLOP per SEKD image, auto precision = {result['precision_auto']}")
+    for name, rate in result["images_per_s"].items():
+        gflops = result["gflop_per_s"].get(name)
+        click.echo(f"  {name:<18}{rate:7.2f} images/s" + (f"  {gflops:6.1f} GFLOP/s" if gflops else ""))
+    click.echo(f"  fast/plain {result['fast_vs_plain']:.2f}x   fast/SIFT {result['fast_vs_sift']:.2f}x")
+    for key in ("agreement_fast_fp32", "agreement_fast_auto"):
+        a = result[key]
+        click.echo(f"  {key}: {100 * a['same_pixel']:.1f}% same pixel, descriptor cosine median {a['cosine_median']:.5f} min {a['cosine_min']:.4f}")
+    if output:
+        output.write_text(json.dumps(result, indent=2))

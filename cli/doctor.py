@@ -1,0 +1,37 @@
+"""``sekd doctor``: what this installation and machine can do."""
+from __future__ import annotations
+
+import platform
+
+import click
+import torch
+
+from sekd_sfm.runtime import cpu_flags, cpu_has_fast_bf16, package_versions
+from sekd_sfm.weights import EMBEDDED_MODEL, file_sha256
+
+CPU_FEATURES = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16", "amx_int8")
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next((l.split(":", 1)[1].strip() for l in f if l.startswith("model name")), platform.processor())
+    except OSError:
+        return platform.processor() or "unknown"
+
+
+@click.command()
+def doctor() -> None:
+    """Print library versions, CPU features, threads, and whether the embedded model and a GPU are found."""
+    for name, version in package_versions().items():
+        click.echo(f"{name:<18}{version}")
+    flags = cpu_flags()
+    click.echo(f"{'cpu':<18}{_cpu_model()}")
+    click.echo(f"{'cpu features':<18}" + " ".join(f"{f}:{'yes' if f in flags else 'no'}" for f in CPU_FEATURES))
+    click.echo(f"{'torch cpu kernels':<18}{torch.backends.cpu.get_cpu_capability()}")
+    click.echo(f"{'threads':<18}{torch.get_num_threads()} intra-op (set with --num-threads)")
+    click.echo(f"{'precision auto':<18}{'bf16 (native bf16 found)' if cpu_has_fast_bf16() else 'fp32'}")
+    model = f"{EMBEDDED_MODEL} (sha256 {file_sha256(EMBEDDED_MODEL)})" if EMBEDDED_MODEL.is_file() else "not found: pass --weights"
+    click.echo(f"{'embedded model':<18}{model}")
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none (CPU only)"
+    click.echo(f"{'gpu':<18}{gpu}")

@@ -1,0 +1,53 @@
+"""Entry point of the ``sekd`` command: a click group; each command lives in its own module."""
+from __future__ import annotations
+
+import logging
+import sys
+
+import click
+
+from sekd_sfm import __version__
+from sekd_sfm.errors import SekdError
+
+
+class SekdGroup(click.Group):
+    """Turns a SekdError anywhere below into one ``Error: ...`` line and exit code 1."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except SekdError as exc:
+            raise click.ClickException(str(exc)) from None
+
+
+@click.group(cls=SekdGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="sekd")
+@click.option("-q", "--quiet", is_flag=True, help="Only print warnings and errors.")
+def sekd(quiet: bool) -> None:
+    """SEKD learned local features for 3D reconstruction.
+
+    \b
+    Data flows through the commands in this order:
+      images -> extract -> features.h5 -> match -> matches.h5 -> reconstruct -> COLMAP model
+    Every command resumes where an interrupted run stopped. Run `sekd COMMAND --help` for details.
+    """
+    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(message)s", stream=sys.stderr)
+
+
+def _register() -> None:
+    from . import bench, doctor, extract
+
+    sekd.add_command(extract.extract)
+    sekd.add_command(doctor.doctor)
+    sekd.add_command(bench.bench)
+
+
+_register()
+
+
+def main() -> None:
+    sekd(prog_name="sekd")
+
+
+if __name__ == "__main__":
+    main()

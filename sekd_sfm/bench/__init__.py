@@ -1,0 +1,1 @@
+"""Benchmarks: speed, homography, pose and SfM evaluations."""

@@ -1,0 +1,133 @@
+"""``sekd bench speed``: images/s at a fixed size for plain fp32, the fast path, and OpenCV SIFT.
+
+All methods run in the same process on the same decoded images, so their ratios are
+meaningful on a noisy machine. The plain path runs first, before the fast path tunes
+the process's allocator, so the baseline is the straightforward PyTorch forward.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+from ..inference import SEKDConfig, SEKDExtractor, nms_keypoints, sample_descriptors
+from ..images import list_images, read_image
+from ..network import SEKDNet
+from ..runtime import package_versions, set_num_threads
+
+
+def count_macs(net: nn.Module, height: int, width: int) -> int:
+    """Multiply-accumulates of one forward at ``height x width`` (convolutions only, groups honoured)."""
+    total = 0
+
+    def hook(module, inputs, output):
+        nonlocal total
+        kernel = module.weight.shape[2] * module.weight.shape[3]
+        c_in_per_group = module.in_channels // module.groups
+        # Transposed convolutions: each input pixel scatters into c_out/groups outputs.
+        pixels = inputs[0].shape[2] * inputs[0].shape[3] if isinstance(module, nn.ConvTranspose2d) else output.shape[2] * output.shape[3]
+        channels = module.out_channels if not isinstance(module, nn.ConvTranspose2d) else module.in_channels
+        per_channel = c_in_per_group if not isinstance(module, nn.ConvTranspose2d) else module.out_channels // module.groups
+        total += pixels * channels * per_channel * kernel
+
+    handles = [m.register_forward_hook(hook) for m in net.modules() if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d))]
+    with torch.inference_mode():
+        net(torch.zeros(1, 1, height, width))
+    for h in handles:
+        h.remove()
+    return total
+
+
+def load_bench_images(image_dir: Path, count: int, height: int, width: int) -> list[np.ndarray]:
+    """``count`` grayscale images resized (area) and centre-cropped to exactly ``height x width``."""
+    images = []
+    for key in list_images(image_dir)[:count]:
+        image = read_image(image_dir / key)
+        scale = max(height / image.shape[0], width / image.shape[1])
+        image = cv2.resize(image, (round(image.shape[1] * scale + 0.5), round(image.shape[0] * scale + 0.5)),
+                           interpolation=cv2.INTER_AREA)
+        top, left = (image.shape[0] - height) // 2, (image.shape[1] - width) // 2
+        images.append(np.ascontiguousarray(image[top:top + height, left:left + width]))
+    return images
+
+
+class PlainSEKD:
+    """The straightforward path: the network as written, fp32, default layout, then the same post-processing."""
+
+    def __init__(self, net: SEKDNet, config: SEKDConfig):
+        self.net, self.config = net.eval(), config
+
+    @torch.inference_mode()
+    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        prob, raw = self.net(torch.from_numpy(image.astype(np.float32) / 255)[None, None])
+        xy, scores = nms_keypoints(prob[0, 0], self.config.nms_radius, self.config.threshold, self.config.max_keypoints)
+        desc = sample_descriptors(raw[0], xy.float(), *image.shape)
+        return {"keypoints": xy.float().numpy(), "scores": scores.numpy(), "descriptors": desc.numpy()}
+
+
+class SiftExtractor:
+    def __init__(self, max_keypoints: int):
+        self.sift = cv2.SIFT_create(nfeatures=max_keypoints)
+
+    def extract(self, image: np.ndarray):
+        return self.sift.detectAndCompute(image, None)
+
+
+def time_method(extractor, images: list[np.ndarray], repeats: int) -> tuple[float, list]:
+    """Images/s over ``repeats`` passes after one warm-up image; also the outputs of the last pass."""
+    extractor.extract(images[0])
+    start = time.perf_counter()
+    for _ in range(repeats):
+        outputs = [extractor.extract(image) for image in images]
+    return repeats * len(images) / (time.perf_counter() - start), outputs
+
+
+def agreement(reference: list[dict], other: list[dict]) -> dict[str, float]:
+    """Share of reference keypoints found at the same pixel, and descriptor cosine there."""
+    same, total, cosines = 0, 0, []
+    for ref, out in zip(reference, other):
+        index = {tuple(p): i for i, p in enumerate(np.round(out["keypoints"]).astype(int))}
+        for i, p in enumerate(np.round(ref["keypoints"]).astype(int)):
+            j = index.get(tuple(p))
+            if j is not None:
+                same += 1
+                cosines.append(float(ref["descriptors"][i] @ out["descriptors"][j]))
+        total += len(ref["keypoints"])
+    cos = np.array(cosines) if cosines else np.zeros(1)
+    return {"same_pixel": same / max(total, 1), "cosine_median": float(np.median(cos)), "cosine_min": float(cos.min())}
+
+
+def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int = 480, width: int = 640,
+                    repeats: int = 2, max_keypoints: int = 2000, num_threads: int | None = None) -> dict:
+    """Run every method on the same images; returns rates, ratios, GFLOP/s and fast-vs-fp32 agreement."""
+    threads = set_num_threads(num_threads)
+    images = load_bench_images(image_dir, count, height, width)
+    gflop = 2 * count_macs(net, height, width) / 1e9
+    config = SEKDConfig(max_keypoints=max_keypoints, device="cpu")
+    # Built lazily and in this order: the fast path tunes the allocator process-wide.
+    factories = {
+        "sekd plain fp32": lambda: PlainSEKD(net, config),
+        "sekd fast fp32": lambda: SEKDExtractor(net, SEKDConfig(**{**config.as_dict(), "precision": "fp32"})),
+        "sekd fast auto": lambda: SEKDExtractor(net, config),
+        "opencv sift": lambda: SiftExtractor(max_keypoints),
+    }
+    rates, outputs, methods = {}, {}, {}
+    for name, factory in factories.items():
+        methods[name] = factory()
+        rates[name], outputs[name] = time_method(methods[name], images, repeats)
+    fast = "sekd fast auto"
+    return {
+        "images": count, "size": [height, width], "threads": threads, "gflop_per_image": gflop,
+        "precision_auto": methods[fast].model.precision,
+        "images_per_s": rates,
+        "gflop_per_s": {k: v * gflop for k, v in rates.items() if k.startswith("sekd")},
+        "fast_vs_plain": rates[fast] / rates["sekd plain fp32"],
+        "fast_vs_sift": rates[fast] / rates["opencv sift"],
+        "agreement_fast_fp32": agreement(outputs["sekd plain fp32"], outputs["sekd fast fp32"]),
+        "agreement_fast_auto": agreement(outputs["sekd plain fp32"], outputs[fast]),
+        "versions": package_versions(),
+    }

@@ -1,0 +1,87 @@
+"""The SEKD network (Song et al. 2020), layer for layer as the authors released it.
+
+Module and parameter names match the released checkpoint so that
+``weights/sekd/sekd.pth`` loads with ``strict=True`` (see ``SPEC.md`` §1).
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+DESCRIPTOR_DIM = 128
+#: Input height and width must be multiples of this (two stride-2 stages).
+STRIDE = 4
+
+
+class ResBlock(nn.Module):
+    """Pre-activation residual block: ``BN -> ReLU -> conv3x3`` plus a shortcut.
+
+    The shortcut is a bias-free 1x1 convolution when the block changes the
+    resolution or the channel count, the identity otherwise.
+    """
+
+    def __init__(self, c_in: int, c_out: int, stride: int = 1):
+        super().__init__()
+        self.convb = nn.Sequential(
+            nn.BatchNorm2d(c_in),
+            nn.ReLU(inplace=False),
+            nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=True),
+        )
+        self.conv_residual = None
+        if stride != 1 or c_in != c_out:
+            self.conv_residual = nn.Conv2d(c_in, c_out, 1, stride=stride, bias=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        shortcut = x if self.conv_residual is None else self.conv_residual(x)
+        return self.convb(x) + shortcut
+
+
+def _stage(c_in: int, c_out: int, stride: int) -> nn.Sequential:
+    return nn.Sequential(ResBlock(c_in, c_out, stride), ResBlock(c_out, c_out), ResBlock(c_out, c_out))
+
+
+def _upsample(c_in: int, c_out: int) -> nn.Sequential:
+    # Grouped (8 groups) transposed convolution doubling the resolution.
+    return nn.Sequential(
+        nn.BatchNorm2d(c_in),
+        nn.ReLU(inplace=False),
+        nn.ConvTranspose2d(c_in, c_out, 3, stride=2, padding=1, output_padding=1, groups=8, bias=True),
+    )
+
+
+class SEKDNet(nn.Module):
+    """SEKD detector + descriptor network (661,762 parameters).
+
+    Input: ``B x 1 x H x W`` grayscale in [0, 1] with H, W multiples of 4.
+    """
+
+    def __init__(self):
+        super().__init__()
+        self.conv0 = nn.Conv2d(1, 32, 5, padding=2, bias=True)
+        self.resblock0 = _stage(32, 32, 1)
+        self.resblock1 = _stage(32, 64, 2)
+        self.resblock2 = _stage(64, 128, 2)
+        self.deconv0 = _upsample(128, 64)
+        self.deconv1 = _upsample(64, 32)
+        self.detector = nn.Conv2d(32, 2, 3, padding=1, bias=True)
+        self.descriptor = ResBlock(128, 128)
+
+    def forward_train(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Return ``(logits B x 2 x H x W, raw descriptors B x 128 x H/4 x W/4, feature0 B x 32 x H x W)``."""
+        f0 = self.resblock0(self.conv0(image))
+        f1 = self.resblock1(f0)
+        f2 = self.resblock2(f1)
+        g1 = f1 + self.deconv0(f2)
+        feature0 = f0 + self.deconv1(g1)
+        return self.detector(feature0), self.descriptor(f2), feature0
+
+    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Return ``(keypoint probability B x 1 x H x W, raw descriptors B x 128 x H/4 x W/4)``."""
+        logits, descriptors, _ = self.forward_train(image)
+        return F.softmax(logits, dim=1)[:, 1:2], descriptors
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of learnable parameters (BatchNorm running statistics excluded)."""
+    return sum(p.numel() for p in model.parameters())

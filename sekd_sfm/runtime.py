@@ -1,0 +1,121 @@
+"""Process-level settings for fast CPU inference: threads, allocator, device, precision.
+
+Also the facts ``sekd doctor`` reports (library versions, CPU features).
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import platform
+import sys
+from functools import lru_cache
+from pathlib import Path
+
+import torch
+
+PRECISIONS = ("auto", "fp32", "bf16")
+DEVICES = ("auto", "cpu", "cuda")
+
+# glibc mallopt parameters (malloc.h).
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+
+
+@lru_cache(maxsize=1)
+def tune_allocator() -> bool:
+    """Keep freed activation buffers in the heap instead of returning them to the OS.
+
+    By default glibc serves every allocation above 32 MB with a fresh ``mmap``; a
+    480x640 forward allocates several such buffers, and the kernel then zeroes every
+    page on first touch. Raising the thresholds doubles fp32 throughput on a 2-core
+    CPU (``sekd bench speed`` measures it). Returns False where glibc is absent.
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        ok = libc.mallopt(_M_MMAP_THRESHOLD, 1 << 30) == 1
+        return ok and libc.mallopt(_M_TRIM_THRESHOLD, (1 << 31) - 1) == 1
+    except (OSError, AttributeError):
+        return False
+
+
+def shared_dir() -> Path:
+    """The project's shared data folder: ``$SEKD_SHARED``, default ``../shared`` from the working directory."""
+    return Path(os.environ.get("SEKD_SHARED", "../shared"))
+
+
+def set_num_threads(num_threads: int | None) -> int:
+    """Use ``num_threads`` intra-op threads (None or 0: one per available core)."""
+    if not num_threads:
+        num_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    torch.set_num_threads(int(num_threads))
+    return torch.get_num_threads()
+
+
+def resolve_device(device: str = "auto") -> torch.device:
+    """``auto`` picks CUDA when a GPU is present, else the CPU."""
+    if device not in DEVICES:
+        raise ValueError(f"device must be one of {DEVICES}, got {device!r}")
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda was asked for but no CUDA GPU is visible to torch")
+    return torch.device(device)
+
+
+@lru_cache(maxsize=1)
+def cpu_flags() -> frozenset[str]:
+    """CPU feature flags from /proc/cpuinfo (empty where unavailable)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return frozenset(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return frozenset()
+
+
+def cpu_has_fast_bf16() -> bool:
+    """True when the CPU computes bf16 natively (AVX512-BF16 or AMX), where bf16 is ~3x fp32."""
+    flags = cpu_flags()
+    if "avx512_bf16" in flags or "amx_bf16" in flags:
+        return True
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported()) and "avx512_bf16" in flags
+    except (AttributeError, RuntimeError):
+        return False
+
+
+def resolve_precision(precision: str, device: torch.device) -> str:
+    """``auto``: bf16 on CPUs with native bf16, fp32 elsewhere (including CUDA, for exactness)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if precision != "auto":
+        return precision
+    return "bf16" if device.type == "cpu" and cpu_has_fast_bf16() else "fp32"
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of the libraries that shape the results (recorded in every output file)."""
+    import cv2
+    import h5py
+    import numpy
+
+    from . import __version__
+
+    versions = {
+        "sekd_sfm": __version__,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": numpy.__version__,
+        "opencv": cv2.__version__,
+        "h5py": h5py.__version__,
+    }
+    for name in ("pycolmap", "kornia"):
+        try:
+            versions[name] = __import__(name).__version__
+        except Exception:  # noqa: BLE001 - an optional import may fail in many ways
+            versions[name] = "not installed"
+    return versions

@@ -1,0 +1,1 @@
+"""COLMAP side: database import, verification, mapping, relative pose, export."""

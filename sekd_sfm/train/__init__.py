@@ -1,0 +1,1 @@
+"""Self-evolving training of SEKD (SPEC_TRAINING.md)."""
