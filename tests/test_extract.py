@@ -1,0 +1,181 @@
+"""`sekd extract`: file layout, resume after a crash, bad input, CLI."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from sekd_sfm import featurefile as ff
+from sekd_sfm.cli.main import sekd
+from sekd_sfm.errors import SekdError
+from sekd_sfm.extract import extract_features
+from sekd_sfm.features import FeatureConfig
+from sekd_sfm.inference import SEKDConfig
+
+from conftest import SEKD_WEIGHTS
+
+
+def textured(seed: int, shape=(120, 160)) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    image = cv2.resize((rng.random((shape[0] // 8, shape[1] // 8)) * 255).astype(np.uint8), shape[::-1],
+                       interpolation=cv2.INTER_CUBIC)
+    return cv2.GaussianBlur(image, (3, 3), 0)
+
+
+def write_images(folder, names, shape=(120, 160)):
+    for i, name in enumerate(names):
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(folder / name), textured(i, shape))
+    return folder
+
+
+def sekd_config(**kw) -> FeatureConfig:
+    return FeatureConfig(feature="sekd", max_keypoints=kw.pop("max_keypoints", 200), weights=str(SEKD_WEIGHTS),
+                         sekd=SEKDConfig(precision="fp32", device="cpu"), **kw)
+
+
+@pytest.fixture
+def images(tmp_path):
+    return write_images(tmp_path / "images", ["a.png", "sub dir/b ü.jpg", "c.pgm"])
+
+
+def test_hloc_layout_and_attributes(images, tmp_path, shared):
+    out = extract_features(images, tmp_path / "f.h5", sekd_config(), progress=False)
+    assert ff.list_keys(out) == ["a.png", "c.pgm", "sub dir/b ü.jpg"]
+    with h5py.File(out) as f:
+        group = f["sub dir/b ü.jpg"]
+        n = group["keypoints"].shape[0]
+        assert 0 < n <= 200
+        assert group["keypoints"].dtype == np.float32 and group["keypoints"].shape == (n, 2)
+        assert group["descriptors"].shape == (128, n)  # D x N as hloc
+        assert group["scores"].shape == (n,)
+        assert group["image_size"][()].tolist() == [160, 120]
+        assert f.attrs["feature_type"] == "sekd" and f.attrs["descriptor_dim"] == 128
+        assert json.loads(f.attrs["config"])["sekd"]["precision"] == "fp32"
+        assert len(f.attrs["model_sha256"]) == 16 and "torch" in json.loads(f.attrs["versions"])
+    features = ff.read_features(out, "a.png")
+    assert np.allclose(np.linalg.norm(features["descriptors"], axis=1), 1, atol=1e-5)
+    assert not (tmp_path / "f.h5.parts").exists()
+
+
+@pytest.mark.parametrize("feature,dim,dtype", [("sift", 128, np.float32), ("orb", 32, np.uint8),
+                                               ("akaze", 61, np.uint8), ("brisk", 64, np.uint8),
+                                               ("kaze", 64, np.float32)])
+def test_classic_features_same_format(tmp_path, feature, dim, dtype):
+    images = write_images(tmp_path / "im", ["x.png"], shape=(240, 320))
+    out = extract_features(images, tmp_path / "f.h5", FeatureConfig(feature=feature, max_keypoints=100), progress=False)
+    features = ff.read_features(out, "x.png")
+    n = len(features["keypoints"])
+    assert 0 < n <= 100
+    assert features["descriptors"].shape == (n, dim) and features["descriptors"].dtype == dtype
+    assert np.all(np.diff(features["scores"]) <= 0)
+
+
+def test_resize_max_maps_keypoints_back(tmp_path, shared):
+    small = textured(3, (96, 128))
+    big = cv2.resize(small, (256, 192), interpolation=cv2.INTER_NEAREST)  # area-downscaling gives `small` back
+    folder = tmp_path / "im"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "small.png"), small)
+    cv2.imwrite(str(folder / "big.png"), big)
+    out = extract_features(folder, tmp_path / "f.h5", sekd_config(resize_max=128), progress=False)
+    kp_small = ff.read_features(out, "small.png")["keypoints"]
+    kp_big = ff.read_features(out, "big.png")
+    assert kp_big["image_size"].tolist() == [256, 192]
+    assert np.allclose(kp_big["keypoints"], (kp_small + 0.5) * 2 - 0.5)
+
+
+def test_resume_after_crash_before_merge(images, tmp_path, monkeypatch, shared):
+    """A run killed after saving parts but before merging: the file opens, the next run completes it."""
+    out = tmp_path / "f.h5"
+    real_merge = ff.merge_parts
+    monkeypatch.setattr(ff, "merge_parts", lambda *a, **k: (_ for _ in ()).throw(SystemExit("killed")))
+    with pytest.raises(SystemExit):
+        extract_features(images, out, sekd_config(), progress=False)
+    assert ff.list_keys(out) == []  # opens, holds nothing yet
+    monkeypatch.setattr(ff, "merge_parts", real_merge)
+    calls = []
+    import sekd_sfm.extract as ex
+    real_features_of = ex._features_of
+    monkeypatch.setattr(ex, "_features_of", lambda *a: calls.append(1) or real_features_of(*a))
+    extract_features(images, out, sekd_config(), progress=False)
+    assert calls == []  # every image came from the saved parts
+    assert ff.list_keys(out) == ["a.png", "c.pgm", "sub dir/b ü.jpg"]
+
+
+def test_kill_9_at_any_moment_leaves_a_readable_file(tmp_path):
+    images = write_images(tmp_path / "im", [f"{i:03d}.png" for i in range(40)], shape=(240, 320))
+    out = tmp_path / "f.h5"
+    script = ("from sekd_sfm.extract import extract_features; from sekd_sfm.features import FeatureConfig; "
+              f"extract_features({str(images)!r}, {str(out)!r}, FeatureConfig(feature='sift', max_keypoints=300), "
+              "progress=False, checkpoint_seconds=0)")
+    proc = subprocess.Popen([sys.executable, "-c", script])
+    deadline = time.monotonic() + 60
+    while not (out.exists() and ff.list_keys(out)) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    first = ff.list_keys(out)  # opens after the kill
+    extract_features(images, out, FeatureConfig(feature="sift", max_keypoints=300), progress=False)
+    clean = extract_features(images, tmp_path / "clean.h5", FeatureConfig(feature="sift", max_keypoints=300), progress=False)
+    assert ff.list_keys(out) == ff.list_keys(clean) == [f"{i:03d}.png" for i in range(40)]
+    assert set(first) <= set(ff.list_keys(out))
+    for key in ("000.png", "039.png"):
+        assert np.array_equal(ff.read_features(out, key)["descriptors"], ff.read_features(clean, key)["descriptors"])
+
+
+def test_corrupt_image_skipped_and_counted(images, tmp_path, shared):
+    (images / "broken.jpg").write_bytes(b"\xff\xd8 not really")
+    out = extract_features(images, tmp_path / "f.h5", FeatureConfig(feature="sift"), progress=False)
+    with h5py.File(out) as f:
+        assert json.loads(f.attrs["failed_images"]) == ["broken.jpg"]
+    assert "broken.jpg" not in ff.list_keys(out)
+    with pytest.raises(SekdError, match="broken.jpg.*--strict"):
+        extract_features(images, tmp_path / "g.h5", FeatureConfig(feature="sift"), strict=True, progress=False)
+
+
+def test_mismatched_configuration_is_refused(images, tmp_path):
+    out = extract_features(images, tmp_path / "f.h5", FeatureConfig(feature="sift", max_keypoints=100), progress=False)
+    with pytest.raises(SekdError, match="different configuration"):
+        extract_features(images, out, FeatureConfig(feature="sift", max_keypoints=50), progress=False)
+    extract_features(images, out, FeatureConfig(feature="sift", max_keypoints=50), overwrite=True, progress=False)
+    assert all(len(ff.read_features(out, k)["keypoints"]) <= 50 for k in ff.list_keys(out))
+
+
+def test_output_that_is_not_a_feature_file(images, tmp_path):
+    (tmp_path / "notes.h5").write_text("hello")
+    with pytest.raises(SekdError, match="not a readable HDF5"):
+        extract_features(images, tmp_path / "notes.h5", FeatureConfig(feature="sift"), progress=False)
+    with h5py.File(tmp_path / "other.h5", "w") as f:
+        f["x"] = 1
+    with pytest.raises(SekdError, match="not a sekd feature file"):
+        extract_features(images, tmp_path / "other.h5", FeatureConfig(feature="sift"), progress=False)
+
+
+def test_cli_extract_and_errors(images, tmp_path, shared):
+    runner = CliRunner()
+    out = tmp_path / "f.h5"
+    result = runner.invoke(sekd, ["extract", str(images), "-o", str(out), "--weights", str(SEKD_WEIGHTS),
+                                  "--max-keypoints", "50", "--precision", "fp32", "--no-progress"])
+    assert result.exit_code == 0, result.output
+    assert len(ff.list_keys(out)) == 3
+    result = runner.invoke(sekd, ["extract", str(tmp_path / "nowhere"), "-o", str(out)])
+    assert result.exit_code == 1
+    assert result.output.strip().splitlines() == [f"Error: {tmp_path / 'nowhere'}: image folder not found; "
+                                                  "give a folder that contains images"]
+    result = runner.invoke(sekd, ["extract", str(images), "-o", str(out), "--weights", str(tmp_path / "no.pth")])
+    assert result.exit_code == 1 and "weights file not found" in result.output
+
+
+def test_cli_version_and_doctor():
+    runner = CliRunner()
+    assert runner.invoke(sekd, ["--version"]).output.startswith("sekd, version")
+    result = runner.invoke(sekd, ["doctor"])
+    assert result.exit_code == 0 and "avx512_bf16" in result.output and "embedded model" in result.output
