@@ -50,3 +50,38 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
         click.echo(f"  {key}: {100 * a['same_pixel']:.1f}% same pixel, descriptor cosine median {a['cosine_median']:.5f} min {a['cosine_min']:.4f}")
     if output:
         output.write_text(json.dumps(result, indent=2))
+
+
+@bench.command()
+@click.argument("roots", nargs=-1, type=click.Path(file_okay=False, path_type=Path))
+@click.option("-m", "--method", "methods", multiple=True,
+              help="[LABEL=]FEATURE[:WEIGHTS], repeatable: sift, orb, akaze, brisk, kaze, disk, aliked, xfeat, "
+                   "sekd (embedded), sekd:PATH. Default: every classic and peer, plus sekd:--weights if given.")
+@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=Path("bench-homography"),
+              show_default=True, help="Folder for results.json, results.md, plots and the prediction cache.")
+@click.option("--resize-max", type=int, default=640, show_default=True, help="Long side limit in px; 0 = full resolution.")
+@click.option("--max-keypoints", type=int, default=500, show_default=True)
+@click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]), default="auto", show_default=True,
+              help="SEKD network precision.")
+@weights_option
+def homography(roots, methods, output, resize_max, max_keypoints, precision, weights) -> None:
+    """Homography estimation (the paper's Table 2 / Fig. 4) on HPatches-layout sequences.
+
+    \b
+    ROOTS are sequence folders (1.*..N.*, H_1_k) or folders of them; default: the shared
+    hpatches and oxford sequences. Prints the table; writes JSON, Markdown and PNG plots.
+    Example:
+      sekd bench homography -m sift -m sekd:../shared/weights/sekd/sekd.pth -o out/hom
+    """
+    from sekd_sfm.bench.homography import HomographyConfig, run_homography_benchmark
+    from sekd_sfm.bench.methods import parse_method
+
+    roots = list(roots) or [shared_dir() / "data/homography/hpatches", shared_dir() / "data/homography/oxford"]
+    specs = list(methods) or DEFAULT_METHODS + ([f"sekd:{weights}"] if weights else [])
+    config = HomographyConfig(resize_max=resize_max or None, max_keypoints=max_keypoints, precision=precision)
+    path = run_homography_benchmark(roots, [parse_method(m) for m in specs], output, config)
+    click.echo((path.parent / "results.md").read_text())
+    click.echo(f"results: {path}")
+
+
+DEFAULT_METHODS = ["sift", "orb", "akaze", "brisk", "kaze", "disk", "aliked", "xfeat"]

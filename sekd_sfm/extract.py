@@ -25,11 +25,13 @@ PREFETCH = 3
 def describe_config(config: FeatureConfig, extractor, model_info) -> dict:
     """The configuration that determines the features (what must match to resume a file)."""
     described = {"feature": config.feature, "max_keypoints": config.max_keypoints, "resize_max": config.resize_max}
+    if model_info:
+        described["model_sha256"] = model_info.sha256
     if config.feature == "sekd":
         sekd = asdict(config.sekd)
         sekd.pop("device")
         sekd["precision"] = extractor.model.precision  # "auto" resolved: it changes the numbers
-        described.update(sekd=sekd, model_sha256=model_info.sha256)
+        described["sekd"] = sekd
     return described
 
 
@@ -67,10 +69,10 @@ def _open_output(output: Path, described: dict, attrs: dict, overwrite: bool, pa
         )
 
 
-def _load(path: Path, resize_max: int | None):
-    image = read_image(path, grayscale=True)
+def _load(path: Path, resize_max: int | None, color: bool):
+    image = read_image(path, grayscale=not color)
     small, sx, sy = resize_max_side(image, resize_max)
-    return image.shape, small, sx, sy
+    return image.shape[:2], small, sx, sy
 
 
 def _features_of(extractor, loaded) -> dict[str, np.ndarray]:
@@ -81,11 +83,11 @@ def _features_of(extractor, loaded) -> dict[str, np.ndarray]:
     return result
 
 
-def _prefetched(pool: ThreadPoolExecutor, paths: list[Path], resize_max: int | None):
+def _prefetched(pool: ThreadPoolExecutor, paths: list[Path], resize_max: int | None, color: bool):
     """Yield ``(path, Future)`` with up to PREFETCH images decoding ahead."""
     queue: deque[tuple[Path, Future]] = deque()
     for path in paths:
-        queue.append((path, pool.submit(_load, path, resize_max)))
+        queue.append((path, pool.submit(_load, path, resize_max, color)))
         if len(queue) > PREFETCH:
             yield queue.popleft()
     yield from queue
@@ -132,7 +134,8 @@ def _run(extractor, image_dir, todo, config, parts, output, strict, progress, ch
     bar = tqdm(total=len(todo), unit="img", desc=f"extract {config.feature}", disable=not progress, dynamic_ncols=True)
     try:
         with ThreadPoolExecutor(max_workers=1) as pool:
-            for path, future in _prefetched(pool, [image_dir / k for k in todo], config.resize_max):
+            for path, future in _prefetched(pool, [image_dir / k for k in todo], config.resize_max,
+                                           getattr(extractor, "color", False)):
                 key = path.relative_to(image_dir).as_posix()
                 try:
                     parts.save(key, _features_of(extractor, future.result()))

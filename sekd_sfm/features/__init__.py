@@ -1,17 +1,20 @@
 """Feature extractors behind one interface, so every later stage treats them alike.
 
-An extractor has ``name``, ``descriptor_dim``, ``binary`` and
-``extract(gray uint8 H x W) -> {'keypoints' N x 2, 'scores' N, 'descriptors' N x D, ...}``.
+An extractor has ``name``, ``descriptor_dim``, ``binary``, optionally ``color`` (wants RGB
+``H x W x 3`` instead of grayscale) and
+``extract(uint8 image) -> {'keypoints' N x 2, 'scores' N, 'descriptors' N x D, ...}``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 from ..inference import SEKDConfig, SEKDExtractor
-from ..weights import ModelInfo, load_model
+from ..runtime import resolve_device
+from ..weights import ModelInfo, file_sha256, load_model
 from .classic import CLASSIC_FEATURES, OpenCVExtractor
+from .peers import PEER_FEATURES, KorniaPeer
 
-FEATURE_TYPES = ("sekd",) + CLASSIC_FEATURES
+FEATURE_TYPES = ("sekd",) + CLASSIC_FEATURES + PEER_FEATURES
 
 
 @dataclass
@@ -35,6 +38,9 @@ def build_extractor(config: FeatureConfig):
         return extractor, info
     if config.feature in CLASSIC_FEATURES:
         return OpenCVExtractor(config.feature, config.max_keypoints), None
+    if config.feature in PEER_FEATURES:
+        peer = KorniaPeer(config.feature, config.max_keypoints, config.weights, resolve_device(config.sekd.device).type)
+        return peer, ModelInfo(str(peer.weights_path), file_sha256(peer.weights_path), {})
     raise ValueError(f"unknown feature type {config.feature!r}; choose from {', '.join(FEATURE_TYPES)}")
 
 

@@ -1,0 +1,61 @@
+"""Readers for benchmark data in the standard layouts.
+
+HPatches layout: a folder per sequence with images ``1.*`` .. ``N.*`` (ppm, png, jpg; sizes
+may differ) and text files ``H_1_k``: a 3x3 matrix mapping image-1 pixels to image k.
+The prefix ``i_`` / ``v_`` of the folder name gives the subset (illumination / viewpoint).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SekdError
+from ..images import IMAGE_EXTENSIONS
+
+
+@dataclass
+class Sequence:
+    """One homography sequence: its name, subset ('i', 'v' or '?'), images by index, H_1_k by k."""
+
+    name: str
+    folder: Path
+    images: dict[int, Path]
+    homographies: dict[int, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def subset(self) -> str:
+        return self.name[0] if self.name[:2] in ("i_", "v_") else "?"
+
+
+def _is_sequence(folder: Path) -> bool:
+    return (folder / "H_1_2").is_file()
+
+
+def read_sequence(folder: Path) -> Sequence:
+    """Read one sequence folder; SekdError when an image named by an ``H_1_k`` is missing."""
+    images = {int(p.stem): p for p in folder.iterdir() if p.stem.isdigit() and p.suffix.lower() in IMAGE_EXTENSIONS}
+    homographies = {}
+    for file in sorted(folder.glob("H_1_*")):
+        k = int(file.name.split("_")[-1])
+        if 1 not in images or k not in images:
+            raise SekdError(f"{file}: image 1 or {k} of this sequence is missing")
+        homographies[k] = np.loadtxt(file).reshape(3, 3)
+    return Sequence(folder.name, folder, images, homographies)
+
+
+def find_sequences(roots: list[Path]) -> list[Sequence]:
+    """All sequences in ``roots`` (each a sequence folder or a folder of them), sorted by name."""
+    sequences = []
+    for root in map(Path, roots):
+        if not root.is_dir():
+            raise SekdError(f"{root}: folder not found; give HPatches-layout sequence folders or their parent")
+        folders = [root] if _is_sequence(root) else sorted(p for p in root.iterdir() if p.is_dir() and _is_sequence(p))
+        sequences += [read_sequence(f) for f in folders]
+    if not sequences:
+        raise SekdError(f"no homography sequences (folders with 1.*, 2.*, H_1_2) found in {', '.join(map(str, roots))}")
+    names = [s.name for s in sequences]
+    if len(set(names)) != len(names):
+        raise SekdError("two sequences share a folder name; rename one so results can be told apart")
+    return sorted(sequences, key=lambda s: s.name)

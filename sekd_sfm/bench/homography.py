@@ -1,0 +1,192 @@
+"""``sekd bench homography``: the paper's homography-estimation evaluation (SPEC.md §3, Table 2, Fig. 4).
+
+Per sequence, pairs (1, k): top-k keypoints per image, mutual-nearest-neighbour matches,
+``cv2.findHomography(RANSAC)`` with OpenCV's defaults, mean corner error. Images are
+resized (long side <= 640 px by default, area interpolation) and cropped to a multiple of
+16 as the authors did; H is rescaled, and every error is in resized-image pixels.
+
+Predictions are cached (resized images, one feature file per method) under the output
+folder, so re-scoring and adding a method only extract what is missing.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from .. import featurefile as ff
+from ..extract import extract_features
+from ..images import read_image
+from ..runtime import package_versions
+from . import metrics
+from .datasets import Sequence, find_sequences
+from .methods import Method, available
+
+logger = logging.getLogger("sekd")
+
+
+@dataclass
+class HomographyConfig:
+    """Protocol settings (defaults: the paper's)."""
+
+    resize_max: int | None = 640   # None: full resolution
+    crop_multiple: int = 16
+    max_keypoints: int = 500
+    precision: str = "auto"        # SEKD network precision
+    threshold: float = 0.4         # SEKD detection threshold (authors' benchmark export)
+    nms_radius: int = 4
+
+    def image_tag(self) -> str:
+        return f"r{self.resize_max or 'full'}-c{self.crop_multiple}"
+
+
+def _pixel_scale(sx: float, sy: float) -> np.ndarray:
+    """3x3 map from resized to original pixels, pixel-centre convention: x_o = sx (x_r + 0.5) - 0.5."""
+    return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1.0]])
+
+
+def _prepare_image(source: Path, target: Path, config: HomographyConfig) -> np.ndarray:
+    """Resize + crop one image into the cache (once); returns its resized->original pixel map."""
+    image = read_image(source, grayscale=False)
+    h, w = image.shape[:2]
+    ratio = min(1.0, config.resize_max / max(h, w)) if config.resize_max else 1.0
+    new_w, new_h = round(w * ratio), round(h * ratio)
+    if not target.exists():
+        small = cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA) if ratio < 1 else image
+        m = config.crop_multiple
+        small = small[: new_h - new_h % m, : new_w - new_w % m]
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.with_name("tmp-" + target.name)
+        cv2.imwrite(str(tmp), cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
+        tmp.replace(target)
+    return _pixel_scale(w / new_w, h / new_h)
+
+
+def prepare_images(sequences: list[Sequence], cache: Path, config: HomographyConfig) -> dict[str, np.ndarray]:
+    """Write the protocol's images under ``cache`` (PNG, keys ``seq/i.png``); returns key -> pixel map."""
+    scales = {}
+    for seq in tqdm(sequences, desc="prepare images", unit="seq", leave=False):
+        for i, path in seq.images.items():
+            key = f"{seq.name}/{i}.png"
+            scales[key] = _prepare_image(path, cache / key, config)
+    return scales
+
+
+def extract_method(method: Method, image_root: Path, cache: Path, config: HomographyConfig) -> tuple[Path, float]:
+    """Features of every prepared image for one method (cached); returns the file and seconds per image."""
+    feature_config = method.feature_config(config.max_keypoints, config.precision, config.threshold, config.nms_radius)
+    tag = hashlib.sha1(json.dumps([asdict(feature_config), config.image_tag()], sort_keys=True, default=str).encode()).hexdigest()[:8]
+    output = cache / f"{method.label}-{tag}.h5"
+    timing = output.with_suffix(".time.json")
+    before = len(ff.list_keys(output)) if output.exists() else 0
+    start = time.perf_counter()
+    extract_features(image_root, output, feature_config, progress=True)
+    extracted = len(ff.list_keys(output)) - before
+    if extracted:
+        timing.write_text(json.dumps({"seconds_per_image": (time.perf_counter() - start) / extracted}))
+    seconds = json.loads(timing.read_text())["seconds_per_image"] if timing.exists() else float("nan")
+    return output, seconds
+
+
+def mutual_nearest_neighbours(d0: np.ndarray, d1: np.ndarray, binary: bool) -> np.ndarray:
+    """TEMPORARY until sekd_sfm.match lands: mutual NN indices ``M x 2`` (L2, or Hamming for bytes)."""
+    if len(d0) == 0 or len(d1) == 0:
+        return np.zeros((0, 2), np.int64)
+    if binary:
+        a, b = np.unpackbits(d0, axis=1).astype(np.float32), np.unpackbits(d1, axis=1).astype(np.float32)
+        dist = a @ (1 - b).T + (1 - a) @ b.T
+    else:
+        a, b = d0.astype(np.float32), d1.astype(np.float32)
+        dist = (a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2 * a @ b.T
+    nn01, nn10 = dist.argmin(1), dist.argmin(0)
+    keep = nn10[nn01] == np.arange(len(d0))
+    return np.stack([np.nonzero(keep)[0], nn01[keep]], 1)
+
+
+def evaluate_pair(f0: dict, f1: dict, homography: np.ndarray, binary: bool) -> dict:
+    """Scores of one pair: corner error, MMA curve, repeatability, number of matches."""
+    matches = mutual_nearest_neighbours(f0["descriptors"], f1["descriptors"], binary)
+    kp0, kp1 = f0["keypoints"].astype(np.float64), f1["keypoints"].astype(np.float64)
+    estimated = None
+    if len(matches) >= 4:
+        estimated, _ = cv2.findHomography(kp0[matches[:, 0]], kp1[matches[:, 1]], cv2.RANSAC)
+    width, height = (int(v) for v in f0["image_size"])
+    return {
+        "corner_error": metrics.corner_error(estimated, homography, width, height),
+        "mma": metrics.match_accuracy(kp0, kp1, matches, homography).tolist(),
+        "repeatability": metrics.repeatability(kp0, kp1, homography, tuple(f0["image_size"]), tuple(f1["image_size"])),
+        "matches": int(len(matches)),
+    }
+
+
+def evaluate_method(features: Path, sequences: list[Sequence], scales: dict, binary: bool) -> list[dict]:
+    """Per-pair results of one method on every (1, k) pair."""
+    results = []
+    for seq in sequences:
+        f0 = ff.read_features(features, f"{seq.name}/1.png")
+        for k, h in sorted(seq.homographies.items()):
+            # Ground truth in resized pixels: H_r = S_k^-1 H S_1.
+            h_resized = np.linalg.inv(scales[f"{seq.name}/{k}.png"]) @ h @ scales[f"{seq.name}/1.png"]
+            f1 = ff.read_features(features, f"{seq.name}/{k}.png")
+            results.append({"sequence": seq.name, "subset": seq.subset, "pair": f"1-{k}",
+                            **evaluate_pair(f0, f1, h_resized, binary)})
+    return results
+
+
+def summarise(pairs: list[dict]) -> dict:
+    """HA curves and Avg.HA@1:10 overall / i / v, MMA curve, repeatability, mean matches."""
+    summary = {}
+    for subset in ("all", "i", "v"):
+        chosen = [p for p in pairs if subset == "all" or p["subset"] == subset]
+        curve = metrics.accuracy_curve([p["corner_error"] for p in chosen])
+        summary[f"ha_{subset}"] = curve.tolist()
+        summary[f"avg_ha_{subset}"] = float(curve.mean()) if chosen else None
+        summary[f"pairs_{subset}"] = len(chosen)
+    summary["mma"] = np.mean([p["mma"] for p in pairs], axis=0).tolist()
+    summary["repeatability"] = float(np.mean([p["repeatability"] for p in pairs]))
+    summary["matches"] = float(np.mean([p["matches"] for p in pairs]))
+    return summary
+
+
+def run_homography_benchmark(roots: list[Path], methods: list[Method], output: Path,
+                             config: HomographyConfig | None = None) -> Path:
+    """Evaluate every method on every sequence; writes results.json, results.md and plots; returns the JSON path."""
+    config = config or HomographyConfig()
+    sequences = find_sequences(roots)
+    cache = Path(output) / "cache" / config.image_tag()
+    scales = prepare_images(sequences, cache / "images", config)
+    results = {"config": asdict(config), "sequences": [s.name for s in sequences],
+               "versions": package_versions(), "methods": {}}
+    for method in available(methods):
+        try:
+            features, seconds = extract_method(method, cache / "images", cache, config)
+            binary = ff.read_attrs(features)["descriptor_dtype"] == "uint8"
+            pairs = evaluate_method(features, sequences, scales, binary)
+        except Exception as exc:  # noqa: BLE001 - one failing method is reported, not fatal
+            logger.warning("%s failed: %s", method.label, exc)
+            results["methods"][method.label] = {"error": str(exc)}
+            continue
+        results["methods"][method.label] = {"method": asdict(method), "seconds_per_image": seconds,
+                                            "summary": summarise(pairs), "pairs": pairs}
+    return write_reports(results, Path(output))
+
+
+def write_reports(results: dict, output: Path) -> Path:
+    """results.json, results.md and the accuracy plots."""
+    from .report import homography_markdown, plot_curves
+
+    output.mkdir(parents=True, exist_ok=True)
+    path = output / "results.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(results, indent=1, default=float))
+    tmp.replace(path)
+    (output / "results.md").write_text(homography_markdown(results))
+    plot_curves(results, output)
+    return path

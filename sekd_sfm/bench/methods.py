@@ -1,0 +1,58 @@
+"""The methods a benchmark compares, named on the command line.
+
+``sift``, ``orb``, ``akaze``, ``brisk``, ``kaze``: OpenCV. ``disk``, ``aliked``, ``xfeat``:
+kornia with local weights. ``sekd``: the embedded model; ``sekd:PATH``: SEKD with the
+checkpoint at PATH (labelled by the file name, e.g. ``sekd:.../sekd_wo_affine.pth`` ->
+``sekd_wo_affine``); ``LABEL=sekd:PATH`` sets the label explicitly.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import SekdError
+from ..features import FEATURE_TYPES, FeatureConfig
+from ..features.peers import PEER_FEATURES, peer_weights_path
+from ..inference import SEKDConfig
+
+logger = logging.getLogger("sekd")
+
+
+@dataclass(frozen=True)
+class Method:
+    """One benchmarked method: a label for tables, a feature type, optional weights."""
+
+    label: str
+    feature: str
+    weights: str | None = None
+
+    def feature_config(self, max_keypoints: int, precision: str = "auto", threshold: float = 0.4,
+                       nms_radius: int = 4) -> FeatureConfig:
+        sekd = SEKDConfig(max_keypoints=max_keypoints, threshold=threshold, nms_radius=nms_radius, precision=precision)
+        return FeatureConfig(feature=self.feature, max_keypoints=max_keypoints, sekd=sekd, weights=self.weights)
+
+
+def parse_method(text: str) -> Method:
+    """Parse ``[LABEL=]FEATURE[:WEIGHTS]``; SekdError for an unknown feature."""
+    label, _, spec = text.rpartition("=") if "=" in text.split(":", 1)[0] else ("", "", text)
+    feature, _, weights = spec.partition(":")
+    if feature not in FEATURE_TYPES:
+        raise SekdError(f"unknown method {text!r}: the feature must be one of {', '.join(FEATURE_TYPES)}")
+    if not label:
+        label = Path(weights).stem if weights else feature
+    return Method(label, feature, weights or None)
+
+
+def available(methods: list[Method]) -> list[Method]:
+    """Drop peers whose weights are absent, with one clear message each (they are skipped, not fatal)."""
+    kept = []
+    for method in methods:
+        if method.feature in PEER_FEATURES:
+            try:
+                peer_weights_path(method.feature, method.weights)
+            except SekdError as exc:
+                logger.warning("skipping %s: %s", method.label, exc)
+                continue
+        kept.append(method)
+    return kept

@@ -1,0 +1,91 @@
+"""Learned peers through kornia, with LOCAL weights (never downloaded): DISK, ALIKED-N16, XFeat.
+
+Each is wrapped in the extractor interface: ``extract(rgb uint8 H x W x 3)`` returns
+keypoints in OpenCV pixel-centre convention, scores, unit descriptors ``N x D`` (float32).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import SekdError
+from ..runtime import shared_dir
+
+#: Default weight files, relative to the shared folder.
+PEER_WEIGHTS = {
+    "disk": "weights/peers/disk/depth-save.pth",
+    "aliked": "weights/peers/aliked/aliked-n16.pth",
+    "xfeat": "weights/peers/xfeat/xfeat.pt",
+}
+PEER_FEATURES = tuple(PEER_WEIGHTS)
+_DIMS = {"disk": 128, "aliked": 128, "xfeat": 64}
+
+
+def peer_weights_path(name: str, weights: str | Path | None) -> Path:
+    """The weight file of a peer; SekdError naming the file when it is absent."""
+    path = Path(weights) if weights else shared_dir() / PEER_WEIGHTS[name]
+    if not path.is_file():
+        raise SekdError(f"{path}: {name} weights not found; pass --weights PATH to a local {name} checkpoint")
+    return path
+
+
+def _load_state(path: Path) -> dict:
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def _build(name: str, path: Path, max_keypoints: int) -> torch.nn.Module:
+    import kornia.feature as KF
+
+    state = _load_state(path)
+    if name == "disk":
+        model = KF.DISK()
+        model.load_state_dict(state["extractor"])
+    elif name == "aliked":
+        model = KF.ALIKED("aliked-n16", max_num_keypoints=max_keypoints)
+        # Only the derived buffer dkd.hw_grid is absent from the file.
+        missing = model.load_state_dict(state, strict=False).missing_keys
+        if any(not k.endswith("hw_grid") for k in missing):
+            raise SekdError(f"{path}: not ALIKED-N16 weights (missing {missing[:3]})")
+    else:
+        model = KF.XFeat(top_k=max_keypoints)
+        model.net.load_state_dict(state)
+    return model.eval()
+
+
+class KorniaPeer:
+    """A kornia feature model with local weights; input is RGB (``color = True``)."""
+
+    binary = False
+    color = True
+
+    def __init__(self, name: str, max_keypoints: int, weights: str | Path | None = None, device: str = "cpu"):
+        self.name, self.max_keypoints = name, max_keypoints
+        self.descriptor_dim = _DIMS[name]
+        self.weights_path = peer_weights_path(name, weights)
+        self.device = torch.device(device)
+        self.model = _build(name, self.weights_path, max_keypoints).to(self.device)
+
+    @torch.inference_mode()
+    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        rgb = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
+        x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float().div(255).to(self.device)
+        keypoints, scores, descriptors = self._run(x)
+        order = torch.argsort(scores, descending=True, stable=True)[: self.max_keypoints]
+        return {"keypoints": keypoints[order].cpu().numpy().astype(np.float32),
+                "scores": scores[order].cpu().numpy().astype(np.float32),
+                "descriptors": descriptors[order].cpu().numpy().astype(np.float32)}
+
+    def _run(self, x: torch.Tensor):
+        if self.name == "disk":
+            f = self.model(x, n=self.max_keypoints, window_size=5, score_threshold=0.0, pad_if_not_divisible=True)[0]
+            return f.keypoints.float(), f.detection_scores, f.descriptors
+        if self.name == "aliked":
+            f = self.model(x)[0]
+            return f.keypoints, f.keypoint_scores, f.descriptors
+        h, w = x.shape[2:]
+        f = self.model.detectAndCompute(x, top_k=self.max_keypoints)[0]
+        # kornia reports XFeat keypoints of the /32-resized image at i * r; the centre is (i + 0.5) r - 0.5.
+        ratio = torch.tensor([w / (w // 32 * 32), h / (h // 32 * 32)], device=x.device)
+        return f["keypoints"] + 0.5 * ratio - 0.5, f["scores"], f["descriptors"]
