@@ -61,8 +61,8 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
               show_default=True, help="Folder for results.json, results.md, plots and the prediction cache.")
 @click.option("--resize-max", type=int, default=640, show_default=True, help="Long side limit in px; 0 = full resolution.")
 @click.option("--max-keypoints", type=int, default=500, show_default=True)
-@click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]), default="auto", show_default=True,
-              help="SEKD network precision.")
+@click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]), default="fp32", show_default=True,
+              help="SEKD network precision (fp32: the model's own numbers; auto: the fast path of `extract`).")
 @weights_option
 def homography(roots, methods, output, resize_max, max_keypoints, precision, weights) -> None:
     """Homography estimation (the paper's Table 2 / Fig. 4) on HPatches-layout sequences.
@@ -85,3 +85,39 @@ def homography(roots, methods, output, resize_max, max_keypoints, precision, wei
 
 
 DEFAULT_METHODS = ["sift", "orb", "akaze", "brisk", "kaze", "disk", "aliked", "xfeat"]
+
+
+@bench.command()
+@click.argument("scenes", nargs=-1, type=click.Path(file_okay=False, path_type=Path))
+@click.option("-m", "--method", "methods", multiple=True, help="As for `bench homography`. Default: every classic and peer.")
+@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=Path("bench-pose"),
+              show_default=True, help="Folder for results.json, results.md, pose_accuracy.png and the feature cache.")
+@click.option("--max-keypoints", type=int, default=2000, show_default=True)
+@click.option("--resize-max", type=int, default=1600, show_default=True, help="Extraction size limit; 0 = full.")
+@click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]), default="fp32", show_default=True,
+              help="SEKD network precision (fp32: the model's own numbers; auto: the fast path of `extract`).")
+@weights_option
+def pose(scenes, methods, output, max_keypoints, resize_max, precision, weights) -> None:
+    """Relative pose on every image pair of scenes with ground-truth cameras (mAA, AUC).
+
+    \b
+    SCENES: Strecha layout (images + gt_dense_cameras/*.camera) or images/ + a COLMAP
+    model as ground truth in sparse/ or sparse/0/. Default: the shared fountain-P11.
+    Example:
+      sekd bench pose -m sift -m sekd:../shared/weights/sekd/sekd.pth -o out/pose
+    """
+    from sekd_sfm.bench.methods import parse_method
+    from sekd_sfm.bench.pose import PoseConfig, run_pose_benchmark
+
+    scenes = list(scenes) or [shared_dir() / "data/sfm/fountain-P11"]
+    specs = list(methods) or DEFAULT_METHODS + ([f"sekd:{weights}"] if weights else [])
+    config = PoseConfig(max_keypoints=max_keypoints, resize_max=resize_max or None, precision=precision)
+    path = run_pose_benchmark(scenes, [parse_method(m) for m in specs], output, config)
+    click.echo((path.parent / "results.md").read_text())
+    click.echo(f"results: {path}")
+
+
+from . import bench_sfm  # noqa: E402  (SfM benchmarks live in their own module)
+
+bench.add_command(bench_sfm.sfm)
+bench.add_command(bench_sfm.ratios)

@@ -35,11 +35,16 @@ def sekd(quiet: bool) -> None:
 
 
 def _register() -> None:
-    from . import bench, doctor, extract
+    from . import bench, doctor, extract, match, reconstruct
 
     sekd.add_command(extract.extract)
     sekd.add_command(doctor.doctor)
     sekd.add_command(bench.bench)
+    sekd.add_command(match.pairs)
+    sekd.add_command(match.match)
+    sekd.add_command(reconstruct.reconstruct)
+    sekd.add_command(reconstruct.relpose)
+    sekd.add_command(reconstruct.export)
 
 
 _register()

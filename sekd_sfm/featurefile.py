@@ -53,15 +53,16 @@ def create_empty(path: Path, attrs: dict) -> None:
     _fsync_replace(tmp, path)
 
 
-def read_attrs(path: Path) -> dict:
-    """The file attributes; SekdError if ``path`` is not a readable feature file."""
+def read_attrs(path: Path, file_format: str = FORMAT) -> dict:
+    """The file attributes; SekdError if ``path`` is not a readable file of ``file_format``."""
     try:
         with h5py.File(path, "r") as f:
             attrs = dict(f.attrs)
     except OSError as exc:
         raise SekdError(f"{path}: not a readable HDF5 file ({exc}); delete it or choose another output") from exc
-    if attrs.get("format") != FORMAT:
-        raise SekdError(f"{path}: not a sekd feature file (no format='{FORMAT}' attribute); choose another output")
+    if attrs.get("format") != file_format:
+        kind = {FORMAT: "feature"}.get(file_format, file_format.removeprefix("sekd-"))
+        raise SekdError(f"{path}: not a sekd {kind} file (no format='{file_format}' attribute); choose another output")
     return attrs
 
 
@@ -127,18 +128,20 @@ class PartStore:
         shutil.rmtree(self.root, ignore_errors=True)
 
 
-def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None) -> int:
-    """Move all saved parts (and new ``attrs``) into the feature file: copy, append, fsync, rename.
+def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None, write_group=None) -> int:
+    """Move all saved parts (and new ``attrs``) into the HDF5 file: copy, append, fsync, rename.
 
-    Returns the number of images merged.
+    ``write_group(f, key, arrays)`` stores one part (default: a feature-file image group),
+    so other files (matches) reuse the same crash-safe scheme. Returns the number of parts merged.
     """
+    write_group = write_group or _write_group
     pending = parts.load_all()
     if pending or attrs:
         tmp = path.with_name(path.name + ".tmp")
         shutil.copyfile(path, tmp)
         with h5py.File(tmp, "a") as f:
             for key in sorted(pending):
-                _write_group(f, key, pending[key])
+                write_group(f, key, pending[key])
             f.attrs.update(attrs or {})
             f.attrs["modified"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         _fsync_replace(tmp, path)
@@ -149,3 +152,27 @@ def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None) -> int:
 def json_attr(value: object) -> str:
     """JSON text for an HDF5 attribute (sorted keys so equal configurations compare equal)."""
     return json.dumps(value, sort_keys=True)
+
+
+def prepare_output(path: Path, attrs: dict, parts: PartStore, overwrite: bool, compare: tuple[str, ...],
+                   what: str = "configuration") -> None:
+    """Create ``path`` with ``attrs``, or check that the existing file agrees on the ``compare`` attributes.
+
+    A resumed run must add to a file made the same way; a different one is refused
+    (``overwrite`` replaces it). Leftovers of a killed merge are removed first.
+    """
+    path.with_name(path.name + ".tmp").unlink(missing_ok=True)
+    if path.exists() and overwrite:
+        path.unlink()
+    if not path.exists():
+        parts.clear()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        create_empty(path, attrs)
+        return
+    existing = read_attrs(path, attrs["format"])
+    for name in compare:
+        if existing.get(name) != attrs.get(name):
+            raise SekdError(
+                f"{path}: was made with a different {what} ({name}={existing.get(name)}, now {attrs.get(name)}); "
+                "pass --overwrite to replace it or choose another output file"
+            )

@@ -59,3 +59,44 @@ def find_sequences(roots: list[Path]) -> list[Sequence]:
     if len(set(names)) != len(names):
         raise SekdError("two sequences share a folder name; rename one so results can be told apart")
     return sorted(sequences, key=lambda s: s.name)
+
+
+@dataclass
+class PoseScene:
+    """Images with ground-truth cameras: name -> (K 3x3, R_cw 3x3, t_cw 3) with x_cam = R_cw X + t_cw."""
+
+    name: str
+    image_dir: Path
+    cameras: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+def _strecha_scene(folder: Path) -> PoseScene:
+    from .strecha import read_cameras
+
+    cameras = {name: (c.K, *c.cam_from_world) for name, c in read_cameras(folder / "gt_dense_cameras").items()}
+    images = folder / "images" if (folder / "images").is_dir() else folder
+    return PoseScene(folder.name, images, cameras)
+
+
+def _colmap_scene(folder: Path, model: Path) -> PoseScene:
+    import pycolmap
+
+    reconstruction = pycolmap.Reconstruction(str(model))
+    cameras = {}
+    for image in reconstruction.images.values():
+        if image.has_pose:
+            pose = image.cam_from_world()
+            cameras[image.name] = (image.camera.calibration_matrix(), pose.rotation.matrix(), np.asarray(pose.translation))
+    return PoseScene(folder.name, folder / "images", cameras)
+
+
+def read_pose_scene(folder: Path) -> PoseScene:
+    """A scene in the Strecha layout (images + ``gt_dense_cameras/*.camera``) or with a COLMAP
+    model as ground truth (``images/`` + ``sparse/`` or ``sparse/0/``)."""
+    folder = Path(folder)
+    if (folder / "gt_dense_cameras").is_dir():
+        return _strecha_scene(folder)
+    for model in (folder / "sparse" / "0", folder / "sparse"):
+        if (model / "images.bin").is_file() or (model / "images.txt").is_file():
+            return _colmap_scene(folder, model)
+    raise SekdError(f"{folder}: no ground truth found (expected gt_dense_cameras/ or images/ + sparse/[0/])")

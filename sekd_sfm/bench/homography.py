@@ -10,10 +10,8 @@ folder, so re-scoring and adding a method only extract what is missing.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -22,12 +20,12 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import featurefile as ff
-from ..extract import extract_features
+from ..match import match_descriptors
 from ..images import read_image
 from ..runtime import package_versions
 from . import metrics
 from .datasets import Sequence, find_sequences
-from .methods import Method, available
+from .methods import Method, available, cached_features
 
 logger = logging.getLogger("sekd")
 
@@ -39,7 +37,7 @@ class HomographyConfig:
     resize_max: int | None = 640   # None: full resolution
     crop_multiple: int = 16
     max_keypoints: int = 500
-    precision: str = "auto"        # SEKD network precision
+    precision: str = "fp32"        # SEKD network precision: the model's own numbers
     threshold: float = 0.4         # SEKD detection threshold (authors' benchmark export)
     nms_radius: int = 4
 
@@ -79,40 +77,10 @@ def prepare_images(sequences: list[Sequence], cache: Path, config: HomographyCon
     return scales
 
 
-def extract_method(method: Method, image_root: Path, cache: Path, config: HomographyConfig) -> tuple[Path, float]:
-    """Features of every prepared image for one method (cached); returns the file and seconds per image."""
-    feature_config = method.feature_config(config.max_keypoints, config.precision, config.threshold, config.nms_radius)
-    tag = hashlib.sha1(json.dumps([asdict(feature_config), config.image_tag()], sort_keys=True, default=str).encode()).hexdigest()[:8]
-    output = cache / f"{method.label}-{tag}.h5"
-    timing = output.with_suffix(".time.json")
-    before = len(ff.list_keys(output)) if output.exists() else 0
-    start = time.perf_counter()
-    extract_features(image_root, output, feature_config, progress=True)
-    extracted = len(ff.list_keys(output)) - before
-    if extracted:
-        timing.write_text(json.dumps({"seconds_per_image": (time.perf_counter() - start) / extracted}))
-    seconds = json.loads(timing.read_text())["seconds_per_image"] if timing.exists() else float("nan")
-    return output, seconds
-
-
-def mutual_nearest_neighbours(d0: np.ndarray, d1: np.ndarray, binary: bool) -> np.ndarray:
-    """TEMPORARY until sekd_sfm.match lands: mutual NN indices ``M x 2`` (L2, or Hamming for bytes)."""
-    if len(d0) == 0 or len(d1) == 0:
-        return np.zeros((0, 2), np.int64)
-    if binary:
-        a, b = np.unpackbits(d0, axis=1).astype(np.float32), np.unpackbits(d1, axis=1).astype(np.float32)
-        dist = a @ (1 - b).T + (1 - a) @ b.T
-    else:
-        a, b = d0.astype(np.float32), d1.astype(np.float32)
-        dist = (a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2 * a @ b.T
-    nn01, nn10 = dist.argmin(1), dist.argmin(0)
-    keep = nn10[nn01] == np.arange(len(d0))
-    return np.stack([np.nonzero(keep)[0], nn01[keep]], 1)
-
-
 def evaluate_pair(f0: dict, f1: dict, homography: np.ndarray, binary: bool) -> dict:
     """Scores of one pair: corner error, MMA curve, repeatability, number of matches."""
-    matches = mutual_nearest_neighbours(f0["descriptors"], f1["descriptors"], binary)
+    matches0, _ = match_descriptors(f0["descriptors"], f1["descriptors"], mode="mnn", device="cpu")
+    matches = np.stack([np.nonzero(matches0 >= 0)[0], matches0[matches0 >= 0]], 1)
     kp0, kp1 = f0["keypoints"].astype(np.float64), f1["keypoints"].astype(np.float64)
     estimated = None
     if len(matches) >= 4:
@@ -166,7 +134,9 @@ def run_homography_benchmark(roots: list[Path], methods: list[Method], output: P
                "versions": package_versions(), "methods": {}}
     for method in available(methods):
         try:
-            features, seconds = extract_method(method, cache / "images", cache, config)
+            feature_config = method.feature_config(config.max_keypoints, config.precision, config.threshold,
+                                                   config.nms_radius)
+            features, seconds = cached_features(method, feature_config, cache / "images", cache, config.image_tag())
             binary = ff.read_attrs(features)["descriptor_dtype"] == "uint8"
             pairs = evaluate_method(features, sequences, scales, binary)
         except Exception as exc:  # noqa: BLE001 - one failing method is reported, not fatal

@@ -7,11 +7,16 @@ checkpoint at PATH (labelled by the file name, e.g. ``sekd:.../sekd_wo_affine.pt
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
-from dataclasses import dataclass
+import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from .. import featurefile as ff
 from ..errors import SekdError
+from ..extract import extract_features
 from ..features import FEATURE_TYPES, FeatureConfig
 from ..features.peers import PEER_FEATURES, peer_weights_path
 from ..inference import SEKDConfig
@@ -29,8 +34,11 @@ class Method:
 
     def feature_config(self, max_keypoints: int, precision: str = "auto", threshold: float = 0.4,
                        nms_radius: int = 4) -> FeatureConfig:
+        # Only SEKD reads the SEKD settings; leaving them at their defaults for other features
+        # keeps those features' cache files valid when a SEKD setting changes.
         sekd = SEKDConfig(max_keypoints=max_keypoints, threshold=threshold, nms_radius=nms_radius, precision=precision)
-        return FeatureConfig(feature=self.feature, max_keypoints=max_keypoints, sekd=sekd, weights=self.weights)
+        return FeatureConfig(feature=self.feature, max_keypoints=max_keypoints, weights=self.weights,
+                             sekd=sekd if self.feature == "sekd" else SEKDConfig(max_keypoints=max_keypoints))
 
 
 def parse_method(text: str) -> Method:
@@ -56,3 +64,24 @@ def available(methods: list[Method]) -> list[Method]:
                 continue
         kept.append(method)
     return kept
+
+
+def cached_features(method: Method, config: FeatureConfig, image_root: Path, cache: Path, tag: str = "") -> tuple[Path, float]:
+    """Features of every image below ``image_root`` for one method, cached in ``cache``.
+
+    The file name carries a hash of the feature configuration (and ``tag``, e.g. the image
+    preparation), so a changed setting gets a new file. Returns the file and the seconds
+    per image measured when it was extracted (decode + network + write).
+    """
+    digest = hashlib.sha1(json.dumps([asdict(config), tag, str(Path(image_root).resolve())], sort_keys=True,
+                                     default=str).encode()).hexdigest()[:8]
+    output = Path(cache) / f"{method.label}-{digest}.h5"
+    timing = output.with_suffix(".time.json")
+    before = len(ff.list_keys(output)) if output.exists() else 0
+    start = time.perf_counter()
+    extract_features(image_root, output, config, progress=True)
+    extracted = len(ff.list_keys(output)) - before
+    if extracted:
+        timing.write_text(json.dumps({"seconds_per_image": (time.perf_counter() - start) / extracted}))
+    seconds = json.loads(timing.read_text())["seconds_per_image"] if timing.exists() else float("nan")
+    return output, seconds

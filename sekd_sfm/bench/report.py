@@ -37,6 +37,13 @@ def homography_markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _distinct_colours(ax) -> None:
+    """20 distinct colours (the default cycle repeats after 10 methods)."""
+    import matplotlib.pyplot as plt
+
+    ax.set_prop_cycle(color=plt.cm.tab20.colors)
+
+
 def plot_curves(results: dict, output: Path) -> list[Path]:
     """homography_accuracy.png (overall / i / v, as the paper's Fig. 4) and mma.png."""
     import matplotlib
@@ -47,6 +54,7 @@ def plot_curves(results: dict, output: Path) -> list[Path]:
     methods = {k: v["summary"] for k, v in results["methods"].items() if "summary" in v}
     fig, axes = plt.subplots(1, 3, figsize=(14, 4), sharey=True)
     for ax, subset, title in zip(axes, ("all", "i", "v"), ("Overall", "Illumination", "Viewpoint")):
+        _distinct_colours(ax)
         for label, s in methods.items():
             if s[f"pairs_{subset}"]:
                 ax.plot(THRESHOLDS, s[f"ha_{subset}"], marker="o", ms=3, label=f"{label} ({100 * s[f'avg_ha_{subset}']:.1f})")
@@ -60,6 +68,7 @@ def plot_curves(results: dict, output: Path) -> list[Path]:
     fig.savefig(paths[0], dpi=110)
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(5, 4))
+    _distinct_colours(ax)
     for label, s in methods.items():
         ax.plot(THRESHOLDS, s["mma"], marker="o", ms=3, label=label)
     ax.set(xlabel="threshold (px)", ylabel="mean matching accuracy", ylim=(0, 1.02))
@@ -69,3 +78,47 @@ def plot_curves(results: dict, output: Path) -> list[Path]:
     fig.savefig(paths[1], dpi=110)
     plt.close(fig)
     return paths
+
+
+def pose_markdown(results: dict) -> str:
+    """One row per method: mAA@1:10, AUC@5/10/20, median errors, matches, inliers."""
+    config = results["config"]
+    lines = [
+        f"Relative pose on all image pairs of {', '.join(results['scenes'])} (up to {config['max_keypoints']} "
+        f"keypoints, long side <= {config['resize_max'] or 'full'} px for extraction, ratio test for float / "
+        "mutual NN for binary descriptors, essential matrix RANSAC).",
+        "",
+        "| method | pairs | mAA@1:10 | AUC@5 | AUC@10 | AUC@20 | median rot (deg) | median trans (deg) | matches | inliers |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for label, entry in results["methods"].items():
+        if "error" in entry:
+            lines.append(f"| {label} | failed: {entry['error']} |" + " |" * 8)
+            continue
+        s = entry["summary"]
+        lines.append(f"| {label} | {s['pairs']} | {s['maa']:.3f} | {s['auc5']:.3f} | {s['auc10']:.3f} | {s['auc20']:.3f} | "
+                     f"{s['median_rotation_deg']:.2f} | {s['median_translation_deg']:.2f} | {s['matches']:.0f} | {s['inliers']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_pose(results: dict, output: Path) -> Path:
+    """pose_accuracy.png: fraction of pairs with pose error below each threshold (1..10 deg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 4))
+    _distinct_colours(ax)
+    for label, entry in results["methods"].items():
+        if "summary" in entry:
+            ax.plot(THRESHOLDS, entry["summary"]["accuracy"], marker="o", ms=3, label=f"{label} ({entry['summary']['maa']:.3f})")
+    ax.set(xlabel="pose error threshold (deg)", ylabel="accuracy", ylim=(0, 1.02))
+    ax.grid(alpha=0.3)
+    if ax.lines:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = output / "pose_accuracy.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,98 @@
+"""``sekd bench sfm`` (our pipeline vs pycolmap's SIFT on a scene with ground truth) and ``sekd bench ratios``."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from sekd_sfm.features import FEATURE_TYPES
+
+from .match import match_config, match_options
+from .options import feature_options, runtime_options, weights_option
+from .reconstruct import camera_options, feature_config
+
+
+@click.command()
+@click.argument("scene")
+@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Folder for results.json, results.md and the work files. Default: bench-sfm-SCENE.")
+@feature_options
+@weights_option
+@runtime_options
+@match_options
+@camera_options
+@click.option("--mapper", multiple=True, metavar="KEY=VALUE", help="pycolmap mapper option for our pipeline.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--no-baseline", is_flag=True, help="Skip pycolmap's SIFT pipeline.")
+def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel, weights,
+        num_threads, device, precision, match_mode, ratio, rootsift, camera_model, camera_mode, camera_params, mapper,
+        seed, no_baseline) -> None:
+    """Reconstruct SCENE with our pipeline and with pycolmap's SIFT; compare with ground-truth cameras.
+
+    \b
+    SCENE is a folder with images/ and gt_dense_cameras/ (Strecha .camera files), or a name
+    under $SEKD_SHARED/data/sfm (fountain-P11). Reports registered images, the median
+    pairwise rotation and translation-direction errors against the ground truth, and wall
+    time of both pipelines (from scratch, on the same images limited to --resize-max px;
+    default 1600). Writes results.json and results.md.
+
+    \b
+    Example:
+      sekd bench sfm fountain-P11 --weights ../shared/weights/sekd/sekd.pth
+      sekd bench sfm fountain-P11 --feature sift --max-keypoints 8000
+    """
+    from sekd_sfm.bench.sfm import benchmark_sfm
+    from sekd_sfm.pairs import PairsConfig
+    from sekd_sfm.sfm.database import CameraConfig
+    from sekd_sfm.sfm.reconstruct import ReconstructConfig
+
+    config = ReconstructConfig(
+        features=feature_config(feature, max_keypoints, threshold, nms_radius, resize_max or 1600, multi_scale,
+                                subpixel, weights, device, precision),
+        pairs=PairsConfig(mode="exhaustive"), matching=match_config(match_mode, ratio, rootsift, device),
+        camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params), mapper=list(mapper),
+        seed=seed)
+    report = benchmark_sfm(scene, output or Path(f"bench-sfm-{Path(scene).name}"), config, baseline=not no_baseline,
+                           num_threads=num_threads)
+    from sekd_sfm.bench.sfm import sfm_markdown
+
+    click.echo(sfm_markdown(report))
+
+
+@click.command()
+@click.argument("scene", default="fountain-P11")
+@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=Path("bench-ratios"),
+              show_default=True, help="Folder for the feature files, ratios.json and ratios.md.")
+@click.option("--features", "feature_list", default=",".join(FEATURE_TYPES), show_default=True,
+              help="Comma-separated feature types to measure (sekd needs --weights).")
+@click.option("--max-keypoints", type=click.IntRange(min=1), default=4000, show_default=True)
+@click.option("--resize-max", type=click.IntRange(min=16), default=1600, show_default=True)
+@click.option("--max-gap", type=click.IntRange(min=1), default=4, show_default=True,
+              help="Pairs (i, i+1) .. (i, i+GAP) of the scene's images in name order.")
+@weights_option
+@click.option("--num-threads", type=int, default=None, help="CPU threads (default: all cores).")
+def ratios(scene, output, feature_list, max_keypoints, resize_max, max_gap, weights, num_threads) -> None:
+    """Measure the ratio-test threshold per feature type on SCENE's ground truth (the matcher's defaults).
+
+    \b
+    For each feature type and each ratio in 0.60..1.00: matches and correct matches per
+    pair (symmetric epipolar distance < 4 px under the ground-truth cameras) and their
+    precision, for mutual nearest neighbours + ratio test and for the ratio test alone.
+    The chosen ratio gives the most correct matches at a precision >= 0.9.
+
+    \b
+    Example:
+      sekd bench ratios fountain-P11 --weights ../shared/weights/sekd/sekd.pth
+    """
+    from sekd_sfm.bench.sfm import benchmark_ratios, ratios_markdown
+    from sekd_sfm.features import FeatureConfig
+    from sekd_sfm.inference import SEKDConfig
+
+    base = FeatureConfig(max_keypoints=max_keypoints, resize_max=resize_max, weights=weights,
+                         sekd=SEKDConfig(max_keypoints=max_keypoints))
+    features = [f.strip() for f in feature_list.split(",") if f.strip()]
+    unknown = sorted(set(features) - set(FEATURE_TYPES))
+    if unknown:
+        raise click.BadParameter(f"unknown feature types {', '.join(unknown)}", param_hint="--features")
+    report = benchmark_ratios(scene, output, features, base, max_gap=max_gap, num_threads=num_threads)
+    click.echo(ratios_markdown(report))

@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# The paper's evaluations on the shared data, every method side by side.
+# Usage: pipelines/paper_benchmarks.sh [OUT_DIR]   (SEKD_SHARED defaults to ../shared)
+# Re-running is cheap: each benchmark caches its extracted features under OUT_DIR.
+set -euo pipefail
+OUT=${1:-bench-results}
+SHARED=${SEKD_SHARED:-../shared}
+W=$SHARED/weights/sekd
+SEKD_METHODS=(-m "sekd_authors=sekd:$W/sekd.pth"
+              -m "sekd:$W/sekd_wo_affine.pth" -m "sekd:$W/sekd_wo_desc_dist.pth"
+              -m "sekd:$W/sekd_wo_desc_rep.pth" -m "sekd:$W/sekd_wo_det_rep.pth")
+if python -c "from sekd_sfm.weights import EMBEDDED_MODEL as m; raise SystemExit(not m.is_file())"; then
+  SEKD_METHODS=(-m "sekd_ours=sekd" "${SEKD_METHODS[@]}")
+fi
+CLASSIC=(-m sift -m orb -m akaze -m brisk -m kaze)
+PEERS=(-m disk -m aliked -m xfeat)
+
+sekd bench speed --weights "$W/sekd.pth" -o "$OUT/speed.json"
+sekd bench homography "${CLASSIC[@]}" "${PEERS[@]}" "${SEKD_METHODS[@]}" -o "$OUT/homography"
+sekd bench pose "${CLASSIC[@]}" "${PEERS[@]}" "${SEKD_METHODS[@]}" -o "$OUT/pose"

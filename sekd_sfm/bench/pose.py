@@ -1,0 +1,148 @@
+"""``sekd bench pose``: relative pose on every image pair of scenes with ground-truth cameras.
+
+Protocol (SPEC.md §3, the IMC stereo task the paper uses): up to 2,000 keypoints per image,
+ratio test (float descriptors, with the feature type's measured default ratio) or mutual
+nearest neighbours (binary), essential matrix by RANSAC on points normalised with the known
+intrinsics, ``cv2.recoverPose``; rotation error = angle of R_est R_gt^T, translation error
+= angle between translation directions, pose error = the larger. Reported: mAA@1:10 deg
+and AUC@5/10/20 deg.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass
+from itertools import combinations
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from .. import featurefile as ff
+from ..errors import SekdError
+from ..match import DEFAULT_RATIO, FALLBACK_RATIO, ROOTSIFT_FEATURES, match_descriptors
+from ..runtime import package_versions
+from . import metrics
+from .datasets import PoseScene, read_pose_scene
+from .methods import Method, available, cached_features
+
+logger = logging.getLogger("sekd")
+
+
+@dataclass
+class PoseConfig:
+    max_keypoints: int = 2000
+    resize_max: int | None = 1600   # extraction size; keypoints are mapped back to original pixels
+    precision: str = "fp32"
+    ransac_px: float = 1.0          # RANSAC threshold in pixels (of the mean focal length)
+    confidence: float = 0.99999
+
+
+def match_pair(f0: dict, f1: dict, feature: str, binary: bool) -> np.ndarray:
+    """``M x 2`` indices: ratio test for float descriptors (measured default ratio; RootSIFT for SIFT,
+    as ``sekd match`` does), mutual NN for binary ones."""
+    mode, ratio = ("mnn", None) if binary else ("ratio", DEFAULT_RATIO["ratio"].get(feature, FALLBACK_RATIO))
+    matches0, _ = match_descriptors(f0["descriptors"], f1["descriptors"], mode=mode, ratio=ratio,
+                                    rootsift=feature in ROOTSIFT_FEATURES, device="cpu")
+    keep = matches0 >= 0
+    return np.stack([np.nonzero(keep)[0], matches0[keep]], 1)
+
+
+def _normalise(points: np.ndarray, K: np.ndarray) -> np.ndarray:
+    return (points - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+
+
+def estimate_relative_pose(kp0, kp1, K0, K1, config: PoseConfig):
+    """``(R, t, inliers)`` of camera 1 from camera 0, or None when fewer than 5 matches or RANSAC fails."""
+    if len(kp0) < 5:
+        return None
+    p0, p1 = _normalise(kp0, K0), _normalise(kp1, K1)
+    threshold = config.ransac_px / np.mean([K0[0, 0], K0[1, 1], K1[0, 0], K1[1, 1]])
+    E, mask = cv2.findEssentialMat(p0, p1, np.eye(3), method=cv2.RANSAC, prob=config.confidence, threshold=threshold)
+    if E is None or E.shape != (3, 3):
+        return None
+    inliers, R, t, mask = cv2.recoverPose(E, p0, p1, np.eye(3), mask=mask)
+    return R, t.ravel(), int(inliers)
+
+
+def pose_errors(estimate, truth0, truth1) -> tuple[float, float]:
+    """(rotation, translation-direction) errors in degrees; (inf, inf) for a failed estimate."""
+    if estimate is None:
+        return float("inf"), float("inf")
+    (_, R0, t0), (_, R1, t1) = truth0, truth1
+    R_gt = R1 @ R0.T
+    t_gt = t1 - R_gt @ t0
+    R, t, _ = estimate
+    return metrics.rotation_error_deg(R, R_gt), metrics.translation_error_deg(t, t_gt)
+
+
+def evaluate_scene(features: Path, scene: PoseScene, feature: str, binary: bool, config: PoseConfig) -> list[dict]:
+    names = sorted(n for n in scene.cameras if n in set(ff.list_keys(features)))
+    if len(names) < 2:
+        raise SekdError(f"{scene.name}: fewer than 2 images have both features and ground-truth cameras")
+    loaded = {n: ff.read_features(features, n) for n in names}
+    results = []
+    for a, b in tqdm(list(combinations(names, 2)), desc=f"pose {scene.name}", unit="pair", leave=False):
+        matches = match_pair(loaded[a], loaded[b], feature, binary)
+        kp0, kp1 = loaded[a]["keypoints"][matches[:, 0]], loaded[b]["keypoints"][matches[:, 1]]
+        estimate = estimate_relative_pose(kp0.astype(np.float64), kp1.astype(np.float64),
+                                          scene.cameras[a][0], scene.cameras[b][0], config)
+        rot, trans = pose_errors(estimate, scene.cameras[a], scene.cameras[b])
+        results.append({"scene": scene.name, "pair": [a, b], "matches": int(len(matches)),
+                        "inliers": estimate[2] if estimate else 0, "rotation_deg": rot, "translation_deg": trans,
+                        "pose_deg": max(rot, trans)})
+    return results
+
+
+def summarise(pairs: list[dict]) -> dict:
+    errors = [p["pose_deg"] for p in pairs]
+    return {"pairs": len(pairs), "maa": metrics.mean_average_accuracy(errors),
+            "accuracy": metrics.accuracy_curve(errors).tolist(),
+            **{f"auc{t}": metrics.pose_auc(errors, t) for t in (5, 10, 20)},
+            "median_rotation_deg": float(np.median([p["rotation_deg"] for p in pairs])),
+            "median_translation_deg": float(np.median([p["translation_deg"] for p in pairs])),
+            "matches": float(np.mean([p["matches"] for p in pairs])),
+            "inliers": float(np.mean([p["inliers"] for p in pairs]))}
+
+
+def run_pose_benchmark(scene_dirs: list[Path], methods: list[Method], output: Path,
+                       config: PoseConfig | None = None) -> Path:
+    """Evaluate every method on every scene; writes results.json, results.md, pose_accuracy.png."""
+    config = config or PoseConfig()
+    scenes = [read_pose_scene(d) for d in scene_dirs]
+    results = {"config": asdict(config), "scenes": [s.name for s in scenes], "versions": package_versions(),
+               "methods": {}}
+    for method in available(methods):
+        try:
+            pairs = _evaluate_method(method, scenes, Path(output) / "cache", config)
+        except Exception as exc:  # noqa: BLE001 - one failing method is reported, not fatal
+            logger.warning("%s failed: %s", method.label, exc)
+            results["methods"][method.label] = {"error": str(exc)}
+            continue
+        results["methods"][method.label] = {"method": asdict(method), "summary": summarise(pairs), "pairs": pairs}
+    return _write(results, Path(output))
+
+
+def _evaluate_method(method: Method, scenes: list[PoseScene], cache: Path, config: PoseConfig) -> list[dict]:
+    feature_config = method.feature_config(config.max_keypoints, config.precision)
+    feature_config.resize_max = config.resize_max
+    pairs = []
+    for scene in scenes:
+        features, _ = cached_features(method, feature_config, scene.image_dir, cache / scene.name)
+        binary = ff.read_attrs(features)["descriptor_dtype"] == "uint8"
+        pairs += evaluate_scene(features, scene, method.feature, binary, config)
+    return pairs
+
+
+def _write(results: dict, output: Path) -> Path:
+    from .report import plot_pose, pose_markdown
+
+    output.mkdir(parents=True, exist_ok=True)
+    path = output / "results.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(results, indent=1, default=float))
+    tmp.replace(path)
+    (output / "results.md").write_text(pose_markdown(results))
+    plot_pose(results, output)
+    return path

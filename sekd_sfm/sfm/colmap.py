@@ -1,0 +1,149 @@
+"""pycolmap access in one place: the version check, COLMAP's log, option parsing, the database.
+
+pycolmap's API changes between releases; everything here is written against the
+tested range below (checked at import with a clear error outside it).
+"""
+from __future__ import annotations
+
+import difflib
+import os
+from contextlib import contextmanager
+from pathlib import Path
+
+from ..errors import SekdError
+
+#: pycolmap versions this code is tested with (as pinned in pyproject.toml).
+PYCOLMAP_RANGE = ((3, 12), (4, 3))
+
+
+def _version_tuple(version: str) -> tuple[int, ...]:
+    numbers = []
+    for part in version.split("+")[0].split("."):
+        digits = "".join(c for c in part if c.isdigit()) if part[:1].isdigit() else ""
+        if not digits:
+            break
+        numbers.append(int(digits))
+    return tuple(numbers)
+
+
+def require_pycolmap():
+    """The pycolmap module; SekdError if it is missing or outside the tested version range."""
+    low, high = PYCOLMAP_RANGE
+    wanted = f"pycolmap>={'.'.join(map(str, low))},<{'.'.join(map(str, high))}"
+    try:
+        import pycolmap
+    except ImportError as exc:
+        raise SekdError(f"pycolmap is not installed ({exc}); install it: pip install '{wanted}'") from exc
+    version = _version_tuple(getattr(pycolmap, "__version__", "0"))
+    if not low <= version < high:
+        raise SekdError(f"pycolmap {pycolmap.__version__} is installed but sekd is tested with {wanted}; "
+                        f"install a tested version: pip install '{wanted}'")
+    return pycolmap
+
+
+def open_database(path: Path):
+    """An open COLMAP database, usable as a context manager (``Database.open`` where the API has it)."""
+    pycolmap = require_pycolmap()
+    if hasattr(pycolmap.Database, "open"):
+        return pycolmap.Database.open(str(path))
+    return pycolmap.Database(str(path))
+
+
+@contextmanager
+def colmap_log(path: Path):
+    """Send COLMAP's log (glog) to the file ``path`` instead of the console while the block runs.
+
+    glog names its file ``<prefix><date>-<time>.<pid>``; the file is renamed to ``path``
+    at the end (replacing the log of an earlier run). Errors are logged there too: the
+    caller explains failures itself.
+    """
+    log = require_pycolmap().logging
+    saved = (log.alsologtostderr, log.logtostderr, log.stderrthreshold, log.minloglevel)
+    prefix = path.with_name(path.name + ".")
+    before = set(path.parent.glob(prefix.name + "*"))
+    log.alsologtostderr, log.logtostderr, log.stderrthreshold, log.minloglevel = False, False, 3, 0
+    for level in (log.WARNING, log.ERROR):
+        log.set_log_destination(level, "")  # INFO's file already receives every level
+    log.set_log_destination(log.INFO, str(prefix))
+    try:
+        yield path
+    finally:
+        log.set_log_destination(log.INFO, "")  # closes (and flushes) the file
+        log.alsologtostderr, log.logtostderr, log.stderrthreshold, log.minloglevel = saved
+        _rename_newest(set(path.parent.glob(prefix.name + "*")) - before, path)
+
+
+def _rename_newest(files: set[Path], target: Path) -> None:
+    if files:
+        newest = max(files, key=lambda p: p.stat().st_mtime)
+        os.replace(newest, target)
+        for other in files - {newest}:
+            other.unlink(missing_ok=True)
+
+
+def _convert(text: str, current, key: str):
+    """``text`` as the type of the option's current value (bool, int, float, str or enum); no eval."""
+    try:
+        if isinstance(current, bool):
+            lowered = text.strip().lower()
+            if lowered not in ("true", "false", "1", "0", "yes", "no"):
+                raise ValueError("expected true or false")
+            return lowered in ("true", "1", "yes")
+        if type(current) is int:
+            return int(text)
+        if isinstance(current, float):
+            return float(text)
+        if isinstance(current, str):
+            return text
+        members = getattr(type(current), "__members__", None)
+        if members:
+            names = {name.lower(): value for name, value in members.items()}
+            if text.strip().lower() not in names:
+                raise ValueError(f"expected one of {', '.join(members)}")
+            return names[text.strip().lower()]
+    except ValueError as exc:
+        raise SekdError(f"option {key}={text}: {exc} (current value {current!r})") from None
+    raise SekdError(f"option {key}: values of type {type(current).__name__} cannot be set from the command line")
+
+
+def set_options(options, assignments: list[str], what: str = "--mapper"):
+    """Apply ``key=value`` strings to a pycolmap options object, validated against its fields.
+
+    Nested fields are written with dots (``mapper.init_min_num_inliers=50``). Unknown keys
+    and values of the wrong type are a SekdError that lists close valid names. Returns ``options``.
+    """
+    for assignment in assignments:
+        key, sep, text = assignment.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise SekdError(f"{what} {assignment!r}: expected key=value, for example mapper.init_min_num_inliers=50")
+        target, name = _resolve(options, key, what)
+        setattr(target, name, _convert(text, getattr(target, name), key))
+    return options
+
+
+def option_names(options, prefix: str = "") -> list[str]:
+    """Dotted names of all settable fields of a pycolmap options object."""
+    names = []
+    for name, value in options.todict().items():
+        child = getattr(options, name)
+        names += option_names(child, f"{prefix}{name}.") if hasattr(child, "todict") else [prefix + name]
+    return names
+
+
+def _resolve(options, key: str, what: str):
+    *path, name = key.split(".")
+    target = options
+    for part in path:
+        target = getattr(target, part, None) if part in _fields(target) else None
+        if target is None or not hasattr(target, "todict"):
+            break
+    if target is None or name not in _fields(target) or hasattr(getattr(target, name), "todict"):
+        close = difflib.get_close_matches(key, option_names(options), n=5, cutoff=0.5)
+        hint = f"; did you mean {', '.join(close)}?" if close else f"; see `{what} help` for the list"
+        raise SekdError(f"{what} {key}: no such option in pycolmap's {type(options).__name__}{hint}")
+    return target, name
+
+
+def _fields(options) -> dict:
+    return options.todict() if hasattr(options, "todict") else {}

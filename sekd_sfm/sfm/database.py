@@ -1,0 +1,138 @@
+"""Stage 4: features.h5 + matches.h5 -> COLMAP database, then geometric verification.
+
+Coordinates: our keypoints follow OpenCV (the centre of the top-left pixel is (0, 0));
+COLMAP puts it at (0.5, 0.5), so keypoints are written with +0.5. Camera parameters
+given by the user (``CameraConfig.params``) are in COLMAP's convention, as COLMAP's own
+``--ImageReader.camera_params``.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .. import featurefile as ff
+from .. import matchfile as mf
+from ..errors import SekdError
+from ..pairs import Pair
+from .colmap import open_database, require_pycolmap, set_options
+
+logger = logging.getLogger("sekd")
+#: Camera sharing: COLMAP's AUTO (same size and EXIF = same camera), one for all, one per folder, one per image.
+CAMERA_MODES = {"auto": "AUTO", "single": "SINGLE", "per-folder": "PER_FOLDER", "per-image": "PER_IMAGE"}
+#: OpenCV -> COLMAP pixel convention.
+COLMAP_PIXEL_OFFSET = 0.5
+
+
+@dataclass
+class CameraConfig:
+    """Camera ``model`` (a COLMAP model name), sharing ``mode`` (CAMERA_MODES), known ``params`` ("f,cx,cy,...")."""
+
+    model: str = "SIMPLE_RADIAL"
+    mode: str = "auto"
+    params: str | None = None
+
+
+def camera_model_names() -> list[str]:
+    """COLMAP camera model names of the installed pycolmap."""
+    return [n for n in require_pycolmap().CameraModelId.__members__ if n != "INVALID"]
+
+
+def parse_camera_params(model: str, params: str | None, width: int = 1000, height: int = 1000) -> list[float] | None:
+    """``params`` ("f,cx,cy,k") as floats, checked against the model's parameter list; None if not given."""
+    if model not in camera_model_names():
+        raise SekdError(f"unknown camera model {model!r}; choose from {', '.join(camera_model_names())}")
+    if params is None:
+        return None
+    names = require_pycolmap().Camera.create_from_model_name(0, model, 1.0, width, height).params_info
+    try:
+        values = [float(v) for v in params.replace(" ", "").split(",") if v]
+    except ValueError:
+        values = []
+    if len(values) != len(names.split(",")):
+        raise SekdError(f"--camera-params {params!r}: the {model} model takes {len(names.split(','))} "
+                        f"comma-separated numbers ({names}), in COLMAP pixel coordinates")
+    return values
+
+
+def _import_images(database: Path, image_dir: Path, names: list[str], camera: CameraConfig) -> None:
+    pycolmap = require_pycolmap()
+    missing = [n for n in names if not (image_dir / n).is_file()]
+    if missing:
+        raise SekdError(f"{image_dir}: lacks {len(missing)} image(s) that have features: {', '.join(missing[:10])}; "
+                        "give the image folder the features were extracted from")
+    if camera.mode not in CAMERA_MODES:
+        raise SekdError(f"unknown camera mode {camera.mode!r}; choose from {', '.join(CAMERA_MODES)}")
+    parse_camera_params(camera.model, camera.params)
+    options = pycolmap.ImageReaderOptions()
+    options.camera_model = camera.model
+    options.camera_params = camera.params or ""
+    mode = getattr(pycolmap.CameraMode, CAMERA_MODES[camera.mode])
+    open_database(database).close()  # import_images needs an existing database file
+    pycolmap.import_images(str(database), str(image_dir), mode, names, options)
+
+
+def _write_keypoints(db, ids: dict[str, int], features: Path) -> None:
+    """Keypoints in COLMAP's pixel convention, after checking each image's size against COLMAP's.
+
+    A size mismatch means the features come from other images (or an EXIF rotation
+    was applied on one side only), which would silently break the geometry.
+    """
+    wrong = []
+    with h5py.File(features, "r") as f:
+        for name, image_id in ids.items():
+            camera = db.read_camera(db.read_image(image_id).camera_id)
+            size = f[name]["image_size"][()].tolist()
+            if [camera.width, camera.height] != size:
+                wrong.append(f"{name} ({camera.width}x{camera.height} on disk, {size[0]}x{size[1]} in the features)")
+            keypoints = f[name]["keypoints"][()].astype(np.float32) + COLMAP_PIXEL_OFFSET
+            db.write_keypoints(image_id, keypoints.reshape(-1, 2))
+    if wrong:
+        raise SekdError(f"{features}: image sizes differ from the images on disk for {', '.join(wrong[:5])}; "
+                        "re-extract features from these images")
+
+
+def create_database(image_dir: str | Path, features: str | Path, matches: str | Path, pairs: list[Pair],
+                    database: str | Path, camera: CameraConfig | None = None) -> Path:
+    """A fresh COLMAP database with cameras, images, keypoints and the raw matches of ``pairs``.
+
+    Images are the keys of ``features``, read from ``image_dir`` by COLMAP (sizes, EXIF focal
+    length). An existing ``database`` is replaced. Returns ``database``.
+    """
+    image_dir, features, matches, database = Path(image_dir), Path(features), Path(matches), Path(database)
+    camera = camera or CameraConfig()
+    for suffix in ("", "-wal", "-shm"):
+        database.with_name(database.name + suffix).unlink(missing_ok=True)
+    names = ff.list_keys(features)
+    _import_images(database, image_dir, names, camera)
+    with open_database(database) as db:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        _write_keypoints(db, ids, features)
+        for name0, name1, idx, _ in mf.iter_matches(matches, [p for p in pairs if p[0] in ids and p[1] in ids]):
+            db.write_matches(ids[name0], ids[name1], idx.astype(np.uint32))
+    logger.info("%s: %d images, %d pairs imported", database, len(ids), len(pairs))
+    return database
+
+
+def two_view_options(assignments: list[str] | None = None, seed: int | None = 0):
+    """pycolmap TwoViewGeometryOptions with ``key=value`` overrides and a fixed RANSAC seed."""
+    options = require_pycolmap().TwoViewGeometryOptions()
+    if seed is not None:
+        options.ransac.random_seed = seed
+    return set_options(options, assignments or [], "--verification")
+
+
+def verify_matches(database: str | Path, options=None, num_threads: int = -1) -> Path:
+    """Geometric verification of all matched pairs in ``database`` (pycolmap, RANSAC on E, F or H).
+
+    Stores each pair's inlier matches and two-view geometry in the database. Returns ``database``.
+    """
+    pycolmap = require_pycolmap()
+    verifier = pycolmap.GeometricVerifierOptions()
+    verifier.num_threads = num_threads
+    pycolmap.geometric_verification(str(database), verifier, pycolmap.ExistingMatchedPairingOptions(),
+                                    options or two_view_options())
+    return Path(database)
