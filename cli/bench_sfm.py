@@ -24,9 +24,12 @@ from .reconstruct import camera_options, feature_config
 @click.option("--mapper", multiple=True, metavar="KEY=VALUE", help="pycolmap mapper option for our pipeline.")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--no-baseline", is_flag=True, help="Skip pycolmap's SIFT pipeline.")
+@click.option("-m", "--method", "methods", multiple=True,
+              help="Run our pipeline once per method ([LABEL=]FEATURE[:WEIGHTS], as `bench homography`), "
+                   "instead of once with --feature/--weights.")
 def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel, weights,
         num_threads, device, precision, match_mode, ratio, rootsift, camera_model, camera_mode, camera_params, mapper,
-        seed, no_baseline) -> None:
+        seed, no_baseline, methods) -> None:
     """Reconstruct SCENE with our pipeline and with pycolmap's SIFT; compare with ground-truth cameras.
 
     \b
@@ -40,7 +43,9 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
     Example:
       sekd bench sfm fountain-P11 --weights ../shared/weights/sekd/sekd.pth
       sekd bench sfm fountain-P11 --feature sift --max-keypoints 8000
+      sekd bench sfm fountain-P11 -m sift -m disk -m sekd:../shared/weights/sekd/sekd.pth
     """
+    from sekd_sfm.bench.methods import available, parse_method
     from sekd_sfm.bench.sfm import benchmark_sfm
     from sekd_sfm.pairs import PairsConfig
     from sekd_sfm.sfm.database import CameraConfig
@@ -53,7 +58,7 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
         camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params), mapper=list(mapper),
         seed=seed)
     report = benchmark_sfm(scene, output or Path(f"bench-sfm-{Path(scene).name}"), config, baseline=not no_baseline,
-                           num_threads=num_threads)
+                           num_threads=num_threads, methods=available([parse_method(m) for m in methods]))
     from sekd_sfm.bench.sfm import sfm_markdown
 
     click.echo(sfm_markdown(report))

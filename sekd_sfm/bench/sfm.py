@@ -29,6 +29,7 @@ from ..sfm.colmap import colmap_log, require_pycolmap
 from ..sfm.mapping import mapper_options, run_mapper
 from ..sfm.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
 from ..sfm.report import write_json
+from .metrics import mean_average_accuracy
 from .strecha import StrechaCamera, pairwise_errors, read_cameras, relative_pose
 
 logger = logging.getLogger("sekd")
@@ -61,22 +62,32 @@ def poses_of(reconstruction) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 
 
 def evaluate(reconstruction, truth: dict[str, StrechaCamera]) -> dict:
-    """Registered images and pairwise pose errors of a reconstruction against ground truth (None: nothing)."""
+    """Registered images and pairwise pose errors of a reconstruction against ground truth.
+
+    ``maa`` is the mean average accuracy (1..10 deg) of the pose error max(rotation,
+    translation direction) over ALL ground-truth pairs: a pair with an unregistered image
+    counts as a failure (SPEC.md §3).
+    """
     if reconstruction is None:
-        return {"registered_images": 0, "median_rotation_deg": None, "median_translation_deg": None}
+        return {"registered_images": 0, "median_rotation_deg": None, "median_translation_deg": None, "maa": 0.0}
     errors = pairwise_errors(poses_of(reconstruction), truth)
+    all_pairs = len(truth) * (len(truth) - 1) // 2
+    pose_errors = [max(r, t) for r, t in zip(errors["rotation_deg"], errors["translation_deg"])]
+    pose_errors += [float("inf")] * (all_pairs - len(pose_errors))
     return {
         "registered_images": int(reconstruction.num_reg_images()),
         "points3D": int(reconstruction.num_points3D()),
+        "mean_track_length": float(reconstruction.compute_mean_track_length()),
         "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
         "median_rotation_deg": errors["median_rotation_deg"],
         "median_translation_deg": errors["median_translation_deg"],
         "max_rotation_deg": max(errors["rotation_deg"], default=None),
+        "maa": mean_average_accuracy(pose_errors),
         "pairs_evaluated": errors["pairs"],
     }
 
 
-def run_ours(scene: Path, work: Path, config: ReconstructConfig, num_threads: int | None) -> dict:
+def run_ours(scene: Path, work: Path, config: ReconstructConfig, num_threads: int | None, label: str | None = None) -> dict:
     """Our whole pipeline from scratch into ``work``: evaluation, wall time and per-stage times."""
     shutil.rmtree(work, ignore_errors=True)
     start, failure = time.perf_counter(), None
@@ -88,7 +99,7 @@ def run_ours(scene: Path, work: Path, config: ReconstructConfig, num_threads: in
     model = work / "model"
     reconstruction = require_pycolmap().Reconstruction(str(model)) if model.is_dir() else None
     stats = _read_json(work / "stats.json")
-    return {"method": f"sekd pipeline ({config.features.feature})", "wall_time_s": round(wall, 1),
+    return {"method": label or f"sekd pipeline ({config.features.feature})", "wall_time_s": round(wall, 1),
             "stage_times_s": stats.get("timings_s", {}), "failure": failure,
             **evaluate(reconstruction, read_cameras(scene / "gt_dense_cameras"))}
 
@@ -123,15 +134,18 @@ def run_pycolmap_sift(scene: Path, work: Path, resize_max: int, camera_mode: str
 
 
 def benchmark_sfm(scene: str | Path, output_dir: str | Path, config: ReconstructConfig, *, baseline: bool = True,
-                  num_threads: int | None = None) -> dict:
-    """Run ours (and pycolmap's SIFT unless ``baseline`` is False) on ``scene``; write results.json and results.md.
+                  num_threads: int | None = None, methods: list | None = None) -> dict:
+    """Run our pipeline (once per ``methods`` entry, else with ``config.features``) and pycolmap's SIFT
+    unless ``baseline`` is False on ``scene``; write results.json and results.md.
 
-    Images are limited to ``config.features.resize_max`` pixels on the long side for both pipelines.
+    ``methods`` are ``bench.methods.Method``; each replaces the feature type and weights of
+    ``config``. Images are limited to ``config.features.resize_max`` px for every pipeline.
     """
     scene, out = resolve_scene(scene), Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
     truth = read_cameras(scene / "gt_dense_cameras")
-    results = [run_ours(scene, out / "ours", config, num_threads)]
+    runs = [(None, config)] if not methods else [(m.label, _with_method(config, m)) for m in methods]
+    results = [run_ours(scene, out / (label or "ours"), cfg, num_threads, label) for label, cfg in runs]
     if baseline:
         results.append(run_pycolmap_sift(scene, out / "pycolmap", config.features.resize_max or 3200,
                                          config.camera.mode, config.seed, num_threads))
@@ -142,6 +156,11 @@ def benchmark_sfm(scene: str | Path, output_dir: str | Path, config: Reconstruct
     return report
 
 
+def _with_method(config: ReconstructConfig, method) -> ReconstructConfig:
+    features = replace(config.features, feature=method.feature, weights=method.weights)
+    return replace(config, features=features)
+
+
 def _fmt(value, digits: int = 3) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
@@ -150,12 +169,13 @@ def sfm_markdown(report: dict) -> str:
     """The benchmark as a Markdown table."""
     lines = [f"SfM on `{Path(report['scene']).name}` ({report['images']} images, long side <= "
              f"{report['resize_max']} px); pose errors are medians over all pairs of registered images.", "",
-             "| method | registered | median rot. err (deg) | median transl. dir. err (deg) | reproj. err (px) "
-             "| 3D points | wall time (s) |", "|---|---|---|---|---|---|---|"]
+             "| method | registered | pose mAA@1:10 | median rot. err (deg) | median transl. dir. err (deg) "
+             "| reproj. err (px) | 3D points | track length | wall time (s) |", "|---|---|---|---|---|---|---|---|---|"]
     for r in report["results"]:
-        lines.append(f"| {r['method']} | {r['registered_images']}/{report['images']} | {_fmt(r['median_rotation_deg'])} "
-                     f"| {_fmt(r['median_translation_deg'])} | {_fmt(r.get('mean_reprojection_error_px'))} "
-                     f"| {r.get('points3D', 0)} | {r['wall_time_s']:.1f} |")
+        lines.append(f"| {r['method']} | {r['registered_images']}/{report['images']} | {_fmt(r.get('maa'))} "
+                     f"| {_fmt(r['median_rotation_deg'])} | {_fmt(r['median_translation_deg'])} "
+                     f"| {_fmt(r.get('mean_reprojection_error_px'))} | {r.get('points3D', 0)} "
+                     f"| {_fmt(r.get('mean_track_length'), 2)} | {r['wall_time_s']:.1f} |")
     return "\n".join(lines) + "\n"
 
 

@@ -1,0 +1,92 @@
+"""Run history: per-epoch losses, labelling statistics and validation, as JSON, CSV and a PNG of curves.
+
+Records are keyed (a resumed run that repeats an epoch replaces its record), and every
+file is written atomically.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from pathlib import Path
+
+SECTIONS = {"epochs": ("round", "kind", "epoch"), "labels": ("task",), "validation": ("task",)}
+
+
+def write_atomic(path: Path, data: str | bytes) -> None:
+    """Write to a temporary file beside ``path`` and rename it over ``path``."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
+    os.replace(tmp, path)
+
+
+def csv_text(rows: list[dict]) -> str:
+    """Rows of dicts as CSV; columns in first-seen order."""
+    columns: list[str] = []
+    for row in rows:
+        columns += [k for k in row if k not in columns]
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+class History:
+    """``history.json`` of a run folder plus its CSV and PNG renderings."""
+
+    def __init__(self, folder: Path):
+        self.folder = Path(folder)
+        path = self.folder / "history.json"
+        self.data = json.loads(path.read_text()) if path.is_file() else {name: [] for name in SECTIONS}
+
+    def add(self, section: str, record: dict) -> None:
+        """Append ``record`` to ``section``, replacing a record with the same key."""
+        key = tuple(record[k] for k in SECTIONS[section])
+        rows = [r for r in self.data[section] if tuple(r[k] for k in SECTIONS[section]) != key]
+        self.data[section] = rows + [dict(record)]
+
+    def save(self, plot: bool = True) -> None:
+        write_atomic(self.folder / "history.json", json.dumps(self.data, indent=1))
+        write_atomic(self.folder / "losses.csv", csv_text(self.data["epochs"]))
+        write_atomic(self.folder / "labels.csv", csv_text(self.data["labels"]))
+        write_atomic(self.folder / "metrics.csv", csv_text(self.data["validation"]))
+        write_atomic(self.folder / "metrics.json", json.dumps(self.data["validation"], indent=1))
+        if plot:
+            write_atomic(self.folder / "curves.png", plot_curves(self.data))
+
+
+def plot_curves(data: dict) -> bytes:
+    """PNG: training loss per epoch (descriptor and detector steps), validation per round, keypoints per image."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    for kind, name in (("b", "descriptor step (b)"), ("d", "detector step (d)")):
+        rows = [(i, r["total"]) for i, r in enumerate(data["epochs"]) if r["kind"] == kind]
+        if rows:
+            axes[0].plot(*zip(*rows), "o-", label=name)
+    axes[0].set(xlabel="epoch (all steps in order)", ylabel="mean loss", title="training loss", yscale="log")
+    val = sorted(data["validation"], key=lambda r: r["round"])
+    for metric in ("mma3", "mma_avg", "ha_avg"):
+        if val:
+            axes[1].plot([r["round"] for r in val], [r[metric] for r in val], "o-", label=metric)
+    axes[1].set(xlabel="round (-1 = start)", ylabel="accuracy", title="validation", ylim=(0, 1))
+    for kind in ("a0", "a", "c"):
+        rows = [(r["round"], r["keypoints"]) for r in data["labels"] if r["kind"] == kind]
+        if rows:
+            axes[2].plot(*zip(*rows), "o-", label=f"labels ({kind})")
+    axes[2].set(xlabel="round", ylabel="keypoints per image", title="labels")
+    for ax in axes:
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend()
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=90)
+    plt.close(fig)
+    return buffer.getvalue()

@@ -1,0 +1,148 @@
+"""Per-round validation on homography sequences (HPatches layout), small and fast.
+
+For each sequence, pairs (1, k): top-k SEKD keypoints, mutual nearest-neighbour matching,
+mean matching accuracy (MMA@t: fraction of matches within t px of the ground truth) and
+homography accuracy (HA@t: RANSAC homography, mean corner error <= t px), t = 1..10,
+as in SPEC.md §3 but on images resized to ``val_long_side``.
+"""
+from __future__ import annotations
+
+import glob
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+from ..errors import SekdError
+from ..images import IMAGE_EXTENSIONS, read_image, resize_max_side
+from ..inference import SEKDConfig, SEKDExtractor
+from ..runtime import shared_dir
+from .model import plain_copy
+
+THRESHOLDS = tuple(range(1, 11))
+
+
+@dataclass(frozen=True)
+class Sequence:
+    """One resized sequence: grayscale images ``1..N`` and homographies from image 1 to each other image."""
+
+    name: str
+    images: tuple[np.ndarray, ...]
+    homographies: tuple[np.ndarray, ...]   # H_1_k for k = 2..N, in resized pixels
+
+
+def find_sequences(patterns: list[str]) -> list[Path]:
+    """Sequence folders matching ``patterns`` (absolute, or relative to the shared folder), sorted."""
+    found = []
+    for pattern in patterns:
+        base = pattern if Path(pattern).is_absolute() else str(shared_dir() / pattern)
+        found += [Path(p) for p in glob.glob(base) if (Path(p) / "H_1_2").is_file()]
+    if not found:
+        raise SekdError(f"no homography sequences (folders with H_1_2) match val_sets {patterns}; "
+                        "set SEKD_SHARED or --set validate=false")
+    return sorted(set(found))
+
+
+def _image_file(folder: Path, index: int) -> Path:
+    for ext in IMAGE_EXTENSIONS:
+        for candidate in (folder / f"{index}{ext}", folder / f"{index}{ext.upper()}"):
+            if candidate.is_file():
+                return candidate
+    raise SekdError(f"{folder}: image {index}.* missing")
+
+
+def _to_small(sx: float, sy: float) -> np.ndarray:
+    """Matrix mapping resized pixels to original ones (pixel-centre convention)."""
+    return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1.0]])
+
+
+def _prepare(path: Path, long_side: int) -> tuple[np.ndarray, np.ndarray]:
+    image, sx, sy = resize_max_side(read_image(path), long_side or None)
+    h, w = image.shape
+    return np.ascontiguousarray(image[: h - h % 16, : w - w % 16]), _to_small(sx, sy)
+
+
+@lru_cache(maxsize=32)
+def load_sequence(folder: Path, long_side: int) -> Sequence:
+    """Images ``1..N`` of a sequence, resized, and each ``H_1_k`` re-expressed in resized pixels."""
+    count = 1 + sum(1 for _ in folder.glob("H_1_*"))
+    first, s1 = _prepare(_image_file(folder, 1), long_side)
+    images, homographies = [first], []
+    for k in range(2, count + 1):
+        image, sk = _prepare(_image_file(folder, k), long_side)
+        h = np.loadtxt(folder / f"H_1_{k}")
+        images.append(image)
+        homographies.append(np.linalg.inv(sk) @ h @ s1)
+    return Sequence(folder.name, tuple(images), tuple(homographies))
+
+
+def mutual_matches(desc1: np.ndarray, desc2: np.ndarray) -> np.ndarray:
+    """Index pairs ``M x 2`` of mutual nearest neighbours between unit descriptors ``N1 x D``, ``N2 x D``."""
+    if len(desc1) == 0 or len(desc2) == 0:
+        return np.zeros((0, 2), np.int64)
+    sim = desc1 @ desc2.T
+    nn12, nn21 = sim.argmax(1), sim.argmax(0)
+    ids = np.arange(len(desc1))
+    keep = nn21[nn12] == ids
+    return np.stack([ids[keep], nn12[keep]], axis=1)
+
+
+def project(h: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Apply a 3x3 homography to ``N x 2`` points."""
+    p = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ h.T
+    return p[:, :2] / p[:, 2:3]
+
+
+def pair_scores(kp1: np.ndarray, kp2: np.ndarray, matches: np.ndarray, h_gt: np.ndarray,
+                shape1: tuple[int, int]) -> tuple[np.ndarray, float]:
+    """(MMA at each threshold, corner error of the RANSAC homography; inf when estimation fails)."""
+    if len(matches) == 0:
+        return np.zeros(len(THRESHOLDS)), float("inf")
+    p1, p2 = kp1[matches[:, 0]].astype(np.float64), kp2[matches[:, 1]].astype(np.float64)
+    err = np.linalg.norm(project(h_gt, p1) - p2, axis=1)
+    mma = np.array([(err <= t).mean() for t in THRESHOLDS])
+    if len(matches) < 4:
+        return mma, float("inf")
+    h_est, _ = cv2.findHomography(p1, p2, cv2.RANSAC)
+    if h_est is None:
+        return mma, float("inf")
+    hh, ww = shape1
+    corners = np.array([[0, 0], [ww - 1, 0], [0, hh - 1], [ww - 1, hh - 1]], np.float64)
+    return mma, float(np.linalg.norm(project(h_est, corners) - project(h_gt, corners), axis=1).mean())
+
+
+def evaluate(net: nn.Module, folders: list[Path], long_side: int, max_keypoints: int, threshold: float,
+             nms_radius: int, device: torch.device) -> dict:
+    """Validation metrics of ``net``: mma3, mma_avg (MMA@1..10), ha3, ha_avg (HA@1..10), per-subset mma3."""
+    config = SEKDConfig(max_keypoints=max_keypoints, threshold=threshold, nms_radius=nms_radius,
+                        precision="fp32", device=device.type)
+    extractor = SEKDExtractor(plain_copy(net), config)
+    rows = []
+    for folder in folders:
+        seq = load_sequence(folder, long_side)
+        feats = [extractor.extract(image) for image in seq.images]
+        for k, h_gt in enumerate(seq.homographies, start=1):
+            matches = mutual_matches(feats[0]["descriptors"], feats[k]["descriptors"])
+            mma, corner = pair_scores(feats[0]["keypoints"], feats[k]["keypoints"], matches, h_gt,
+                                      seq.images[0].shape)
+            rows.append((seq.name, mma, corner, len(matches), len(feats[0]["keypoints"])))
+    return summarise(rows)
+
+
+def summarise(rows: list[tuple]) -> dict:
+    """Average the per-pair results ``(sequence, mma[10], corner_error, matches, keypoints)``."""
+    mma = np.array([r[1] for r in rows])
+    corner = np.array([r[2] for r in rows])
+    ha = np.array([(corner <= t).mean() for t in THRESHOLDS])
+    out = {"pairs": len(rows), "mma3": float(mma[:, 2].mean()), "mma_avg": float(mma.mean()),
+           "ha3": float(ha[2]), "ha_avg": float(ha.mean()),
+           "matches": float(np.mean([r[3] for r in rows])), "keypoints": float(np.mean([r[4] for r in rows]))}
+    for prefix in ("i", "v"):
+        subset = [r[1][2] for r in rows if r[0].startswith(prefix + "_")]
+        if subset:
+            out[f"mma3_{prefix}"] = float(np.mean(subset))
+    return out

@@ -1,0 +1,183 @@
+"""Labelling steps: detector averaging (a), descriptor reliability (c), random keypoints (a0), NMS, storage."""
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from sekd_sfm.train.config import TrainConfig
+from sekd_sfm.train.labels import (Labels, average_detections, fused_reliability, label_one, random_keypoints,
+                                   reliability_scale, select_keypoints)
+from sekd_sfm.train.model import BlockDiagonalConvTranspose2d, new_network, use_fast_deconv
+
+CFG = TrainConfig()
+
+
+def identity_grids(m: int, h: int, w: int) -> torch.Tensor:
+    theta = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]]).expand(m, 2, 3)
+    return F.affine_grid(theta, [m, 1, h, w], align_corners=False)
+
+
+def one_unique_location(h=32, w=32, at=(16, 16)):
+    """Every pixel holds e1 except one holding e2, in the target and in one identical view."""
+    target = torch.zeros(4, h, w)
+    target[0] = 1
+    target[:, at[0], at[1]] = torch.tensor([0.0, 1.0, 0.0, 0.0])
+    return target, target[None].clone()
+
+
+def reliability_direct(target, views, grids, cfg):
+    """SPEC §5.4-5.5 transcribed with grid_sample: the oracle for the fast implementation."""
+    h, w = target.shape[1:]
+    unit = torch.tensor([2.0 / w, 2.0 / h])
+    reach = cfg.rel_radius * cfg.rel_stride
+    valid = ((grids.abs() + reach * unit) < 1).all(-1).float()
+
+    def dist(dx, dy):
+        grid = grids + torch.tensor([dx, dy]) * cfg.rel_stride * unit
+        g = F.normalize(F.grid_sample(views, grid, mode="bilinear", padding_mode="zeros", align_corners=False), dim=1)
+        return torch.sqrt(2 - 2 * (g * target[None]).sum(1) + cfg.rel_dist_eps)
+
+    offsets = [(dx, dy) for dy in range(-3, 4) for dx in range(-3, 4) if (dx, dy) != (0, 0)]
+    d_dis = torch.stack([dist(dx, dy) for dx, dy in offsets]).amin(0)
+    r = valid * d_dis / (dist(0, 0) + cfg.rel_rep_eps)
+    return r.sum(0) / (valid.sum(0) + cfg.rel_count_eps)
+
+
+def test_unique_location_has_the_highest_reliability():
+    target, views = one_unique_location()
+    r = reliability_scale(target, views, identity_grids(1, 32, 32), CFG)
+    peak = math.sqrt(2 + 1e-4) / (math.sqrt(1e-4) + 0.03) / 1.01   # distinct from all 48 neighbours
+    flat = math.sqrt(1e-4) / (math.sqrt(1e-4) + 0.03) / 1.01         # neighbours identical to it
+    assert r[16, 16].item() == pytest.approx(peak, rel=1e-4)
+    assert r[10, 20].item() == pytest.approx(flat, rel=1e-4)
+    assert torch.nonzero(r == r.max()).tolist() == [[16, 16]]
+    # Valid only where the +-6 px lattice stays inside: columns/rows 6..25 of 32.
+    assert r[5, 16] == 0 and r[16, 26] == 0 and r[6, 6] > 0 and r[25, 25] > 0
+
+
+def test_reliability_ablations_by_hand():
+    target, views = one_unique_location()
+    grids = identity_grids(1, 32, 32)
+    no_rep = reliability_scale(target, views, grids, dataclasses.replace(CFG, no_desc_rep=True))
+    assert no_rep[16, 16].item() == pytest.approx(math.sqrt(2 + 1e-4) / 1.03 / 1.01, rel=1e-4)
+    no_dis = reliability_scale(target, views, grids, dataclasses.replace(CFG, no_desc_dis=True))
+    # Without distinctness every repeatable pixel scores 1 / (0.01 + 0.03): no peak at the unique one.
+    assert torch.allclose(no_dis[6:26, 6:26], torch.full((20, 20), 1 / 0.04 / 1.01), rtol=1e-4)
+
+
+def test_repeatability_lowers_reliability():
+    # The unique pixel becomes unrepeatable when the view holds e3 there instead of e2.
+    target, views = one_unique_location()
+    views[0, :, 16, 16] = torch.tensor([0.0, 0.0, 1.0, 0.0])
+    r = reliability_scale(target, views, identity_grids(1, 32, 32), CFG)
+    assert r[16, 16].item() == pytest.approx(math.sqrt(2 + 1e-4) / (math.sqrt(2 + 1e-4) + 0.03) / 1.01, rel=1e-4)
+
+
+@pytest.mark.parametrize("method", ["tiled", "sampled"])
+def test_reliability_implementations_equal_the_transcription(method):
+    # tiled: the CPU algorithm (matrix products + Gram maps); sampled: grid_sample per pixel (GPU).
+    torch.manual_seed(0)
+    thetas = torch.tensor([[[0.9, 0.3, 0.01], [-0.1, 1.1, 0.0]], [[1.2, 0.0, 0.02], [0.3, 0.8, -0.03]]])
+    for c, h, w in ((16, 40, 56), (8, 23, 37)):
+        views = torch.randn(2, c, h, w)
+        target = F.normalize(torch.randn(c, h, w), dim=0)
+        grids = F.affine_grid(thetas, [2, 1, h, w], align_corners=False)
+        got = reliability_scale(target, views, grids, CFG, method=method)
+        assert torch.allclose(got, reliability_direct(target, views, grids, CFG), atol=1e-4)
+
+
+def test_fused_map_averages_fine_and_upsampled_coarse():
+    torch.manual_seed(1)
+    desc, feat = torch.randn(3, 8, 12, 16), torch.randn(3, 4, 48, 64)
+    thetas = torch.tensor([[[1.0, 0.1, 0.0], [0.0, 0.9, 0.02]], [[0.8, 0.0, 0.0], [0.2, 1.1, 0.0]]])
+    grids = F.affine_grid(thetas, [2, 1, 48, 64], align_corners=False)
+    fused = fused_reliability(desc, feat, grids, CFG)
+    coarse_grids = F.interpolate(grids.permute(0, 3, 1, 2), size=(12, 16), mode="bilinear",
+                                 align_corners=False).permute(0, 2, 3, 1)
+    coarse = reliability_direct(F.normalize(desc[0], dim=0), desc[1:], coarse_grids, CFG)
+    fine = reliability_direct(F.normalize(feat[0], dim=0), feat[1:], grids, CFG)
+    up = F.interpolate(coarse[None, None], size=(48, 64), mode="bilinear", align_corners=False)[0, 0]
+    assert torch.allclose(fused, 0.5 * (fine + up), atol=1e-4)
+
+
+def test_detector_average_by_hand():
+    prob = torch.stack([torch.full((8, 8), v) for v in (0.2, 0.5, 0.8)])
+    pbar = average_detections(prob, identity_grids(2, 8, 8), band=2)
+    assert torch.allclose(pbar[2:6, 2:6], torch.full((4, 4), 0.5))   # (0.2 + 0.5 + 0.8) / 3
+    assert torch.allclose(pbar[0], torch.full((8,), 0.2))           # band: the target view only
+
+
+def test_select_keypoints_nms_threshold_cap_and_border():
+    score = torch.zeros(20, 20)
+    score[10, 10], score[10, 12], score[5, 15], score[1, 10], score[15, 4] = 0.9, 0.8, 0.7, 0.95, 0.3
+    xy, scores = select_keypoints(score, threshold=0.5, radius=3, max_keypoints=10, border=3)
+    # (12,10) is suppressed by (10,10); (10,1) lies in the border; (4,15) is below the threshold.
+    assert xy.tolist() == [[10, 10], [15, 5]] and scores.tolist() == pytest.approx([0.9, 0.7])
+    xy, _ = select_keypoints(score, threshold=0.5, radius=3, max_keypoints=2, border=3)
+    assert xy.tolist() == [[10, 10]]  # the cap keeps the 2 best (one in the border), then the border goes
+
+
+def test_random_keypoints_in_range_and_unique():
+    xy = random_keypoints(10, 20, 500, np.random.default_rng(0))
+    assert len(np.unique(xy, axis=0)) == len(xy) and len(xy) < 200  # 200 pixels: duplicates merged
+    assert xy[:, 0].max() < 20 and xy[:, 1].max() < 10 and xy.min() >= 0
+
+
+def test_label_one_runs_each_kind_on_a_network():
+    torch.set_num_threads(1)
+    net = use_fast_deconv(new_network(0)).eval()
+    rgb = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    cfg = dataclasses.replace(CFG, num_warps=2, border_band=4, det_threshold=0.0, rel_threshold=0.0)
+    for kind in ("a0", "a", "c"):
+        xy, scores, score = label_one(net, rgb, np.random.default_rng(1), kind, cfg, torch.device("cpu"))
+        assert score.shape == (48, 64) and len(xy) == len(scores) > 0
+        assert torch.allclose(score[xy[:, 1], xy[:, 0]], torch.from_numpy(scores))
+
+
+def test_labels_round_trip(tmp_path):
+    labels = Labels("c", 2)
+    labels.keypoints = {3: np.array([[1, 2], [3, 4]], np.int32), 0: np.zeros((0, 2), np.int32)}
+    labels.scores = {3: np.array([0.5, 0.25], np.float32), 0: np.zeros(0, np.float32)}
+    labels.sizes = {3: (10, 20), 0: (10, 30)}
+    labels.save(tmp_path / "l.npz")
+    back = Labels.load(tmp_path / "l.npz")
+    assert back.kind == "c" and back.round_index == 2 and back.sizes == labels.sizes
+    assert np.array_equal(back.keypoints[3], labels.keypoints[3]) and back.keypoints[0].shape == (0, 2)
+    assert back.bg_weight == pytest.approx(1.0 / (250 - 1.0))  # mean 1 keypoint over mean 250 pixels
+
+
+def test_block_diagonal_deconv_matches_grouped():
+    torch.manual_seed(0)
+    grouped = torch.nn.ConvTranspose2d(16, 8, 3, stride=2, padding=1, output_padding=1, groups=8)
+    fast = BlockDiagonalConvTranspose2d(16, 8, 3, stride=2, padding=1, output_padding=1, groups=8)
+    fast.load_state_dict(grouped.state_dict())
+    x = torch.randn(2, 16, 5, 6, requires_grad=True)
+    y1, y2 = grouped(x), fast(x)
+    assert torch.allclose(y1, y2, atol=1e-6)
+    y1.square().sum().backward()
+    g1 = grouped.weight.grad.clone()
+    y2.square().sum().backward()
+    assert torch.allclose(g1, fast.weight.grad, atol=1e-5)
+
+
+def test_no_affine_uses_the_target_view_in_a_and_one_warp_in_c(monkeypatch):
+    from sekd_sfm.train import labels as labels_module
+
+    seen = []
+    original = labels_module.forward_views
+
+    def counting(net, views, chunk, device):
+        seen.append(views.shape[0])
+        return original(net, views, chunk, device)
+
+    monkeypatch.setattr(labels_module, "forward_views", counting)
+    net = new_network(0).eval()
+    rgb = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    for no_affine in (False, True):
+        cfg = dataclasses.replace(CFG, num_warps=3, no_affine=no_affine)
+        for kind in ("a", "c"):
+            label_one(net, rgb, np.random.default_rng(1), kind, cfg, torch.device("cpu"))
+    assert seen == [4, 4, 1, 2]  # target + m warps; no_affine: target only (a), target + 1 warp (c)

@@ -1,0 +1,212 @@
+"""Whole runs: tiny self-evolving training improves matching, exports usable models, resumes exactly,
+reports user errors in one line, and runs data-parallel over two processes."""
+import json
+import os
+import subprocess
+import sys
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from sekd_sfm.cli.main import sekd
+from sekd_sfm.errors import SekdError
+from sekd_sfm.train.config import load_run_config, resolve_config
+from sekd_sfm.train.evolve import RunFolder, evolve, train_one_step
+from sekd_sfm.weights import load_model
+
+from conftest import SHARED
+
+
+def write_small_coco(folder, count: int, long_side: int = 128):
+    """The first ``count`` shared COCO photos, downscaled (area) to ``long_side``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for path in sorted((SHARED / "data/train/coco").glob("*.jpg"))[:count]:
+        image = cv2.imread(str(path))
+        h, w = image.shape[:2]
+        s = long_side / max(h, w)
+        small = cv2.resize(image, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(folder / path.name), small)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def images16(shared, tmp_path_factory):
+    return write_small_coco(tmp_path_factory.mktemp("coco16"), 16)
+
+
+@pytest.fixture(scope="module")
+def images8(shared, tmp_path_factory):
+    return write_small_coco(tmp_path_factory.mktemp("coco8"), 8)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(images16, tmp_path_factory):
+    """The `tiny` schedule as shipped: 2 rounds on 16 photos, seed 0 (about 40 s on one core)."""
+    torch.set_num_threads(1)
+    cfg = resolve_config("tiny", None, {"images": str(images16), "seed": 0, "progress": False})
+    return evolve(tmp_path_factory.mktemp("runs") / "tiny", cfg)
+
+
+def quick_config(images, **overrides):
+    values = {"images": str(images), "rounds": 1, "epochs_desc": 2, "epochs_det": 2, "validate": False,
+              "progress": False, **overrides}
+    return resolve_config("tiny", None, values)
+
+
+def test_tiny_run_improves_held_out_matching(tiny_run):
+    start, *rounds = sorted(tiny_run.validation, key=lambda r: r["round"])
+    assert start["task"] == "start" and [r["task"] for r in rounds] == ["r0_d", "r1_d"]
+    final = rounds[-1]
+    # Held-out homography sequences (never trained on): the random start matches worse.
+    assert final["mma3"] > start["mma3"] + 0.02
+    assert final["ha_avg"] > start["ha_avg"]
+    best = load_model(tiny_run.best)[1].meta
+    assert best["validation"]["mma3"] == max(r["mma3"] for r in rounds)
+
+
+def test_run_folder_records_everything(tiny_run, images16):
+    root = tiny_run.folder
+    state = json.loads((root / "state.json").read_text())
+    assert state["done"] == ["start", "r0_a0", "r0_b", "r0_c", "r0_d", "r1_a", "r1_b", "r1_c", "r1_d"]
+    cfg = load_run_config(root / "config.yaml")
+    assert cfg.schedule == "tiny" and cfg.rounds == 2 and cfg.images == str(images16)
+    epochs = json.loads((root / "history.json").read_text())["epochs"]
+    assert [(e["task"], e["epoch"]) for e in epochs] == (
+        [("r0_b", i) for i in range(4)] + [("r0_d", 0)] + [("r1_b", i) for i in range(4)] + [("r1_d", 0)])
+    assert (root / "losses.csv").read_text().count("\n") == 11
+    assert (root / "metrics.csv").read_text().count("\n") == 4
+    assert (root / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "validation after r1_d" in (root / "train.log").read_text()
+    for task in ("r0_b", "r0_d", "r1_b", "r1_d"):
+        assert (root / "models" / f"{task}.pth").is_file()
+    assert {p.name for p in (root / "labels").iterdir()} == {"r0_a0.npz", "r0_c.npz", "r1_a.npz", "r1_c.npz"}
+    assert not (root / "checkpoints" / "resume.pt").exists()
+
+
+def test_exported_models_load_and_run_in_extract(tiny_run, images8, tmp_path):
+    net, info = load_model(tiny_run.last)
+    assert info.meta["task"] == "r1_d" and info.meta["schedule"] == "tiny"
+    out = tmp_path / "features.h5"
+    result = CliRunner().invoke(sekd, ["extract", str(images8), "-o", str(out), "--weights", str(tiny_run.best),
+                                       "--max-keypoints", "50", "--precision", "fp32", "--device", "cpu",
+                                       "--num-threads", "1", "--no-progress"])
+    assert result.exit_code == 0, result.output
+    with h5py.File(out) as f:
+        assert len(f.keys()) == 8
+        group = f[sorted(f.keys())[0]]
+        assert 0 < group["keypoints"].shape[0] <= 50 and group["descriptors"].shape[0] == 128
+
+
+def test_resume_after_every_epoch_equals_uninterrupted(images8, tmp_path, monkeypatch):
+    torch.set_num_threads(1)
+    cfg = quick_config(images8)  # round 0 with random keypoints: a0, b (2 epochs), c, d (2 epochs)
+    reference = evolve(tmp_path / "whole", cfg)
+
+    original = RunFolder.save_epoch
+
+    def crash_after_saving(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        raise KeyboardInterrupt  # as if Ctrl-C arrived right after the checkpoint
+
+    monkeypatch.setattr(RunFolder, "save_epoch", crash_after_saving)
+    with pytest.raises(KeyboardInterrupt):
+        evolve(tmp_path / "resumed", cfg)
+    interruptions = 1
+    while True:
+        try:
+            resumed = evolve(tmp_path / "resumed", None, resume=True)
+            break
+        except KeyboardInterrupt:
+            interruptions += 1
+    assert interruptions == 4  # once after every epoch (the last one's save happens before 'done')
+    a = torch.load(reference.last, weights_only=True)["state_dict"]
+    b = torch.load(resumed.last, weights_only=True)["state_dict"]
+    assert a.keys() == b.keys()
+    for key in a:  # same process, same threads: the resumed run is bitwise identical
+        assert torch.equal(a[key], b[key]), key
+    losses = [(tmp_path / run / "losses.csv").read_text() for run in ("whole", "resumed")]
+    assert losses[0] == losses[1]
+
+
+def test_resume_and_new_run_errors(images8, tmp_path):
+    with pytest.raises(SekdError, match="no run to resume"):
+        evolve(tmp_path / "nothing", None, resume=True)
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "state.json").write_text("{}")
+    with pytest.raises(SekdError, match="already holds a run"):
+        evolve(folder, quick_config(images8))
+    with pytest.raises(SekdError, match="training image folder not found"):
+        evolve(tmp_path / "new", quick_config(tmp_path / "missing"))
+
+
+def test_train_one_step_from_a_checkpoint(tiny_run, images8, tmp_path):
+    torch.set_num_threads(1)
+    cfg = quick_config(images8, init_weights=str(tiny_run.last), epochs_desc=1)
+    result = train_one_step(tmp_path / "step", cfg, step="desc", keypoints="detector", round_index=3)
+    state = json.loads((tmp_path / "step" / "state.json").read_text())
+    assert state["done"] == ["r3_a", "r3_b"]
+    start = load_model(tiny_run.last)[0].state_dict()
+    trained = load_model(result.last)[0].state_dict()
+    assert not torch.equal(start["descriptor.convb.2.weight"], trained["descriptor.convb.2.weight"])
+
+
+@pytest.mark.parametrize("args,message", [
+    (["evolve", "--images", "/no/such/folder", "--out", "{tmp}/r", "--schedule", "tiny"], "image folder not found"),
+    (["evolve", "--images", "{tmp}", "--out", "{tmp}/r", "--set", "bogus=1"], "unknown config key"),
+    (["evolve", "--out", "{tmp}/none", "--resume"], "no run to resume"),
+    (["train", "--out", "{tmp}/r", "--weights", "/no/such.pth", "--images", "{tmp}"], "starting weights not found"),
+])
+def test_cli_user_errors_are_one_line(args, message, tmp_path):
+    result = CliRunner().invoke(sekd, [a.format(tmp=tmp_path) for a in args])
+    assert result.exit_code == 1
+    assert message in result.output and result.output.strip().count("\n") == 0, result.output
+
+
+def test_cli_train_writes_models(images8, tmp_path):
+    out = tmp_path / "run"
+    result = CliRunner().invoke(sekd, ["train", "--images", str(images8), "--out", str(out), "--schedule", "tiny",
+                                       "--step", "det", "--keypoints", "reliability", "--set", "epochs_det=1",
+                                       "--set", "validate=false", "--no-progress", "--seed", "3"])
+    assert result.exit_code == 0, result.output
+    assert f"best model: {out / 'best.pth'}" in result.output
+    assert load_model(out / "last.pth")[1].meta["step"] == "d"
+    assert load_run_config(out / "config.yaml").seed == 3
+
+
+def test_two_process_data_parallel_run(images8, tmp_path):
+    out = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "SEKD_SHARED": str(SHARED)}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "sekd_sfm.cli.main", "evolve", "--images", str(images8), "--out", str(out), "--schedule", "tiny",
+           "--no-progress", "--num-threads", "1", "--set", "rounds=1", "--set", "epochs_desc=1",
+           "--set", "val_sets=[data/homography/hpatches/*]"]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    log = (out / "train.log").read_text()
+    assert "2 process(es)" in log
+    assert log.count("weights identical on all 2 processes") == 2  # after (b) and after (d)
+    with np.load(out / "labels" / "r0_c.npz") as z:
+        assert sorted(z["indices"].tolist()) == list(range(8))  # each process labelled half, all gathered
+    assert load_model(out / "best.pth")[1].meta["task"] == "r0_d"
+
+
+@pytest.mark.parametrize("variant", [
+    {"desc_loss": "margin", "margin_normalise": "nonzero", "det_preserve_on": "prob", "rep_loss": "paper",
+     "lambda_keep": 1e-3, "label_warp": "inverse", "jitter_target": False, "isotropic_scale": True},
+    {"no_desc_rep": True, "no_desc_dis": False, "no_det_rep": True, "no_affine": True, "rel_threshold": 0.5},
+    {"no_desc_dis": True, "round0_random": False, "save_maps": True, "keep_epoch_checkpoints": False},
+])
+def test_paper_variants_and_ablations_run(variant, images8, tmp_path):
+    torch.set_num_threads(1)
+    result = evolve(tmp_path / "run", quick_config(images8, epochs_desc=1, epochs_det=1, **variant))
+    net, info = load_model(result.last)
+    assert info.meta["config"]["rep_loss"] == variant.get("rep_loss", "weighted")
+    losses = json.loads((tmp_path / "run" / "history.json").read_text())["epochs"]
+    assert losses and all(np.isfinite(e["total"]) for e in losses)
+    with np.load(tmp_path / "run" / "labels" / "r0_c.npz") as z:
+        assert z["counts"].sum() > 0 and (f"map_{z['indices'][0]}" in z) == variant.get("save_maps", False)
