@@ -10,7 +10,6 @@ folder, so re-scoring and adding a method only extract what is missing.
 """
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -150,13 +149,6 @@ def run_homography_benchmark(roots: list[Path], methods: list[Method], output: P
 
 def write_reports(results: dict, output: Path) -> Path:
     """results.json, results.md and the accuracy plots."""
-    from .report import homography_markdown, plot_curves
+    from .report import homography_markdown, plot_curves, write_results
 
-    output.mkdir(parents=True, exist_ok=True)
-    path = output / "results.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(results, indent=1, default=float))
-    tmp.replace(path)
-    (output / "results.md").write_text(homography_markdown(results))
-    plot_curves(results, output)
-    return path
+    return write_results(results, output, homography_markdown, plot_curves)

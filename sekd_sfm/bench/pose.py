@@ -9,7 +9,6 @@ and AUC@5/10/20 deg.
 """
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import asdict, dataclass
 from itertools import combinations
@@ -136,13 +135,6 @@ def _evaluate_method(method: Method, scenes: list[PoseScene], cache: Path, confi
 
 
 def _write(results: dict, output: Path) -> Path:
-    from .report import plot_pose, pose_markdown
+    from .report import plot_pose, pose_markdown, write_results
 
-    output.mkdir(parents=True, exist_ok=True)
-    path = output / "results.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(results, indent=1, default=float))
-    tmp.replace(path)
-    (output / "results.md").write_text(pose_markdown(results))
-    plot_pose(results, output)
-    return path
+    return write_results(results, output, pose_markdown, plot_pose)

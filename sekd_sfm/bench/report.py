@@ -1,7 +1,9 @@
 """Markdown tables and PNG plots of benchmark results."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -121,4 +123,16 @@ def plot_pose(results: dict, output: Path) -> Path:
     path = output / "pose_accuracy.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)
+    return path
+
+
+def write_results(results: dict, output: Path, markdown: Callable[[dict], str], plot: Callable[[dict, Path], object]) -> Path:
+    """results.json (atomically), results.md and the plots of one benchmark run; returns the JSON path."""
+    output.mkdir(parents=True, exist_ok=True)
+    path = output / "results.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(results, indent=1, default=float))
+    tmp.replace(path)
+    (output / "results.md").write_text(markdown(results))
+    plot(results, output)
     return path
