@@ -8,6 +8,7 @@ import click
 
 from sekd_sfm import __version__
 from sekd_sfm.errors import SekdError
+from sekd_sfm.runtime import stop_cleanly_on_sigterm
 
 
 class SekdGroup(click.Group):
@@ -32,6 +33,7 @@ def sekd(quiet: bool) -> None:
     Every command resumes where an interrupted run stopped. Run `sekd COMMAND --help` for details.
     """
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(message)s", stream=sys.stderr)
+    stop_cleanly_on_sigterm()
 
 
 def _register() -> None:

@@ -5,8 +5,10 @@ Also the facts ``sekd doctor`` reports (library versions, CPU features).
 from __future__ import annotations
 
 import ctypes
+import importlib.metadata
 import os
 import platform
+import signal
 import sys
 from functools import lru_cache
 from pathlib import Path
@@ -97,6 +99,32 @@ def resolve_precision(precision: str, device: torch.device) -> str:
     return "bf16" if device.type == "cpu" and cpu_has_fast_bf16() else "fp32"
 
 
+def stop_cleanly_on_sigterm() -> None:
+    """Make SIGTERM (``kill``, job schedulers) raise KeyboardInterrupt, so stages stop as on Ctrl-C:
+    each saves what is done and says how to resume."""
+    signal.signal(signal.SIGTERM, _raise_interrupt)
+
+
+def _raise_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def keep_sigterm_handler(import_module):
+    """Import through ``import_module()`` without losing our SIGTERM handler.
+
+    pycolmap's glog installs a crash handler for SIGTERM when it is imported, which would
+    kill the process without saving.
+    """
+    previous = signal.getsignal(signal.SIGTERM)
+    module = import_module()
+    if previous is _raise_interrupt:
+        try:
+            signal.signal(signal.SIGTERM, previous)
+        except ValueError:  # not the main thread: signals cannot be set here
+            pass
+    return module
+
+
 def package_versions() -> dict[str, str]:
     """Versions of the libraries that shape the results (recorded in every output file)."""
     import cv2
@@ -114,8 +142,8 @@ def package_versions() -> dict[str, str]:
         "h5py": h5py.__version__,
     }
     for name in ("pycolmap", "kornia"):
-        try:
-            versions[name] = __import__(name).__version__
-        except Exception:  # noqa: BLE001 - an optional import may fail in many ways
+        try:  # metadata, not an import: importing pycolmap has side effects (signal handlers)
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
             versions[name] = "not installed"
     return versions

@@ -179,3 +179,21 @@ def test_cli_version_and_doctor():
     assert runner.invoke(sekd, ["--version"]).output.startswith("sekd, version")
     result = runner.invoke(sekd, ["doctor"])
     assert result.exit_code == 0 and "avx512_bf16" in result.output and "embedded model" in result.output
+
+
+def test_sigterm_stops_cleanly_and_the_next_run_completes(tmp_path):
+    images = write_images(tmp_path / "im", [f"{i:03d}.png" for i in range(60)], shape=(240, 320))
+    out = tmp_path / "f.h5"
+    proc = subprocess.Popen([sys.executable, "-m", "sekd_sfm.cli.main", "extract", str(images), "-o", str(out),
+                             "--feature", "sift", "--no-progress"], stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not (out.parent / "f.h5.parts").exists() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=60)
+    if proc.returncode != 0:  # stopped mid-run: one error line saying how to resume, parts merged
+        assert proc.returncode == 1 and "interrupted" in stderr and "run the same command again" in stderr
+        assert not (tmp_path / "f.h5.parts").exists()
+    saved = ff.list_keys(out)
+    extract_features(images, out, FeatureConfig(feature="sift"), progress=False)
+    assert set(saved) <= set(ff.list_keys(out)) and len(ff.list_keys(out)) == 60

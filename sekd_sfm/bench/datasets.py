@@ -79,9 +79,9 @@ def _strecha_scene(folder: Path) -> PoseScene:
 
 
 def _colmap_scene(folder: Path, model: Path) -> PoseScene:
-    import pycolmap
+    from ..sfm.colmap import require_pycolmap
 
-    reconstruction = pycolmap.Reconstruction(str(model))
+    reconstruction = require_pycolmap().Reconstruction(str(model))
     cameras = {}
     for image in reconstruction.images.values():
         if image.has_pose:

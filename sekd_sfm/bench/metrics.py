@@ -59,10 +59,14 @@ def repeatability(kp0: np.ndarray, kp1: np.ndarray, homography: np.ndarray, size
     return float(repeated / (len(a) + len(b)))
 
 
+def rotation_angle_deg(rotation: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees (robust to rounding outside [-1, 1])."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
+
+
 def rotation_error_deg(r_est: np.ndarray, r_gt: np.ndarray) -> float:
     """Angle (degrees) of R_est R_gt^T."""
-    cos = (np.trace(r_est @ r_gt.T) - 1) / 2
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return rotation_angle_deg(r_est @ r_gt.T)
 
 
 def translation_error_deg(t_est: np.ndarray, t_gt: np.ndarray) -> float:

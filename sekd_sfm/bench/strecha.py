@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SekdError
+from .metrics import rotation_angle_deg
 
 
 @dataclass(frozen=True)
@@ -51,11 +52,6 @@ def read_cameras(folder: str | Path) -> dict[str, StrechaCamera]:
     if not cameras:
         raise SekdError(f"{folder}: no .camera files found")
     return cameras
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of a rotation matrix in degrees (robust to rounding outside [-1, 1])."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
 def relative_pose(cam_from_world0: tuple[np.ndarray, np.ndarray], cam_from_world1: tuple[np.ndarray, np.ndarray]):

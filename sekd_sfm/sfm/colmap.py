@@ -6,11 +6,13 @@ tested range below (checked at import with a clear error outside it).
 from __future__ import annotations
 
 import difflib
+import importlib
 import os
 from contextlib import contextmanager
 from pathlib import Path
 
 from ..errors import SekdError
+from ..runtime import keep_sigterm_handler
 
 #: pycolmap versions this code is tested with (as pinned in pyproject.toml).
 PYCOLMAP_RANGE = ((3, 12), (4, 3))
@@ -31,7 +33,7 @@ def require_pycolmap():
     low, high = PYCOLMAP_RANGE
     wanted = f"pycolmap>={'.'.join(map(str, low))},<{'.'.join(map(str, high))}"
     try:
-        import pycolmap
+        pycolmap = keep_sigterm_handler(lambda: importlib.import_module("pycolmap"))
     except ImportError as exc:
         raise SekdError(f"pycolmap is not installed ({exc}); install it: pip install '{wanted}'") from exc
     version = _version_tuple(getattr(pycolmap, "__version__", "0"))
