@@ -27,7 +27,6 @@ import json
 import h5py
 import numpy as np
 
-from . import featurefile as ff
 from .errors import SekdError
 
 FORMAT = "sekd-matches"

@@ -1,6 +1,5 @@
 """`sekd extract`: file layout, resume after a crash, bad input, CLI."""
 import json
-import os
 import signal
 import subprocess
 import sys

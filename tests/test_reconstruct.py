@@ -15,7 +15,7 @@ from sekd_sfm.extract import describe_config
 from sekd_sfm.features import FeatureConfig, build_extractor
 from sekd_sfm.sfm.colmap import open_database, require_pycolmap, set_options
 from sekd_sfm.sfm.database import CameraConfig, parse_camera_params
-from sekd_sfm.sfm.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
+from sekd_sfm.sfm.reconstruct import ReconstructConfig, reconstruct
 
 pycolmap = require_pycolmap()
 W, H, F = 640, 480, 500.0

@@ -5,7 +5,6 @@ import json
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 
 from .metrics import THRESHOLDS
 
