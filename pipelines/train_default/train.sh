@@ -4,7 +4,9 @@
 # The run folder lives next to this script (config, state, logs, labels, per-step models).
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
-SHARED=${SEKD_SHARED:-../shared}
+# The shared data beside the checkout unless SEKD_SHARED says otherwise (validation reads it too).
+export SEKD_SHARED=$(cd "${SEKD_SHARED:-$HERE/../../../shared}" && pwd)
+SHARED=$SEKD_SHARED
 RUN=$HERE/run
 if [ -f "$RUN/state.json" ]; then
   sekd evolve --out "$RUN" --resume "$@"
