@@ -53,3 +53,19 @@ def test_tiny_run_on_fountain(tmp_path, shared):
     assert summary["pairs"] == 55
     assert summary["median_rotation_deg"] < 1.0 and summary["maa"] > 0.3
     assert (tmp_path / "pose_accuracy.png").is_file()
+
+
+def test_colmap_model_as_ground_truth(tmp_path):
+    model = tmp_path / "scene/sparse/0"
+    model.mkdir(parents=True)
+    (tmp_path / "scene/images").mkdir()
+    (model / "cameras.txt").write_text("1 PINHOLE 640 480 500 510 320 240\n")
+    # Image 2: 90 deg about z (quaternion w = x = 0, y = 0, z = sin 45 = cos 45), translation (1, 2, 3).
+    (model / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.jpg\n\n"
+                                      "2 0.7071067811865476 0 0 0.7071067811865476 1 2 3 1 b.jpg\n\n")
+    (model / "points3D.txt").write_text("")
+    scene = read_pose_scene(tmp_path / "scene")
+    assert scene.image_dir == tmp_path / "scene/images" and sorted(scene.cameras) == ["a.jpg", "b.jpg"]
+    K, R, t = scene.cameras["b.jpg"]
+    assert np.allclose(K, [[500, 0, 319.5], [0, 510, 239.5], [0, 0, 1]])  # OpenCV pixel centres
+    assert np.allclose(R, [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-9) and np.allclose(t, [1, 2, 3])

@@ -86,7 +86,9 @@ def _colmap_scene(folder: Path, model: Path) -> PoseScene:
     for image in reconstruction.images.values():
         if image.has_pose:
             pose = image.cam_from_world()
-            cameras[image.name] = (image.camera.calibration_matrix(), pose.rotation.matrix(), np.asarray(pose.translation))
+            K = np.array(image.camera.calibration_matrix(), dtype=np.float64)
+            K[:2, 2] -= 0.5  # COLMAP puts the first pixel's centre at 0.5; our keypoints at 0 (OpenCV)
+            cameras[image.name] = (K, pose.rotation.matrix(), np.asarray(pose.translation))
     return PoseScene(folder.name, folder / "images", cameras)
 
 
