@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .network import STRIDE, SEKDNet
+from .network import STRIDE, SEKDNet, use_fast_deconv
 from .runtime import resolve_device, resolve_precision, tune_allocator
 
 _DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
@@ -38,35 +38,11 @@ class SEKDConfig:
         return asdict(self)
 
 
-def ungroup_transposed_conv(layer: nn.ConvTranspose2d) -> nn.ConvTranspose2d:
-    """An ungrouped transposed convolution with a block-diagonal weight: same output, faster on CPU.
-
-    Grouped transposed convolutions fall off oneDNN's fast path; the block-diagonal
-    equivalent does ``groups`` times more multiply-adds by zero but runs several times faster.
-    """
-    groups = layer.groups
-    c_in, c_out_per_group = layer.weight.shape[:2]
-    c_in_per_group = c_in // groups
-    weight = layer.weight.new_zeros(c_in, c_out_per_group * groups, *layer.weight.shape[2:])
-    for g in range(groups):
-        rows = slice(g * c_in_per_group, (g + 1) * c_in_per_group)
-        cols = slice(g * c_out_per_group, (g + 1) * c_out_per_group)
-        weight[rows, cols] = layer.weight[rows]
-    new = nn.ConvTranspose2d(
-        c_in, c_out_per_group * groups, layer.kernel_size, stride=layer.stride, padding=layer.padding,
-        output_padding=layer.output_padding, groups=1, bias=layer.bias is not None,
-    )
-    new.weight.data.copy_(weight)
-    if layer.bias is not None:
-        new.bias.data.copy_(layer.bias.data)
-    return new
-
-
 class FastSEKD(nn.Module):
     """An eval-mode SEKD network prepared for speed on ``device`` at ``precision``.
 
-    ``fp32`` is exact to float round-off (only the grouped transposed convolutions are
-    rewritten, and channels-last layout is used); ``bf16`` keeps bf16 weights and
+    ``fp32`` is exact to float round-off (the grouped transposed convolutions run as
+    block-diagonal dense ones, which oneDNN computes several times faster; channels-last layout); ``bf16`` keeps bf16 weights and
     activations (native on AVX512-BF16/AMX CPUs) and returns float32 maps.
     """
 
@@ -74,10 +50,7 @@ class FastSEKD(nn.Module):
         super().__init__()
         self.device = resolve_device(device)
         self.precision = resolve_precision(precision, self.device)
-        net = copy.deepcopy(net).eval()
-        for name in ("deconv0", "deconv1"):
-            block = getattr(net, name)
-            block[2] = ungroup_transposed_conv(block[2])
+        net = use_fast_deconv(copy.deepcopy(net).eval())
         self.dtype = _DTYPES[self.precision]
         self.net = net.to(self.device, self.dtype).to(memory_format=torch.channels_last)
         if self.device.type == "cpu":
