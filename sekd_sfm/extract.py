@@ -50,25 +50,6 @@ def _file_attrs(config: FeatureConfig, described: dict, extractor, model_info) -
     }
 
 
-def _open_output(output: Path, described: dict, attrs: dict, overwrite: bool, parts: ff.PartStore) -> None:
-    """Create the output, or check that an existing one was made with the same configuration."""
-    output.with_name(output.name + ".tmp").unlink(missing_ok=True)  # left by a killed merge
-    if output.exists() and overwrite:
-        output.unlink()
-        parts.clear()
-    if not output.exists():
-        parts.clear()
-        output.parent.mkdir(parents=True, exist_ok=True)
-        ff.create_empty(output, attrs)
-        return
-    existing = ff.read_attrs(output)
-    if existing.get("config") != attrs["config"]:
-        raise SekdError(
-            f"{output}: was made with a different configuration ({existing.get('config')}); "
-            "pass --overwrite to replace it or choose another output file"
-        )
-
-
 def _load(path: Path, resize_max: int | None, color: bool):
     image = read_image(path, grayscale=not color)
     small, sx, sy = resize_max_side(image, resize_max)
@@ -118,7 +99,7 @@ def extract_features(
     described = describe_config(config, extractor, model_info)
     attrs = _file_attrs(config, described, extractor, model_info)
     parts = ff.PartStore(output)
-    _open_output(output, described, attrs, overwrite, parts)
+    ff.prepare_output(output, attrs, parts, overwrite, compare=("config",))
     done = set(ff.list_keys(output)) | set(parts.load_all())
     todo = [k for k in keys if k not in done]
     logger.info("%s: %d images, %d already done, %d to extract", image_dir, len(keys), len(keys) - len(todo), len(todo))
