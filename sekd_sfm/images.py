@@ -79,6 +79,11 @@ def resize_max_side(image: np.ndarray, max_side: int | None) -> tuple[np.ndarray
     return resized, w / new_w, h / new_h
 
 
+def resized_to_original_matrix(sx: float, sy: float) -> np.ndarray:
+    """3x3 map from resized to original pixels (pixel-centre convention), as ``to_original_pixels``."""
+    return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1.0]])
+
+
 def to_original_pixels(keypoints: np.ndarray, sx: float, sy: float) -> np.ndarray:
     """Map ``N x 2`` keypoints of a resized image back to original pixels (pixel-centre convention)."""
     if sx == 1.0 and sy == 1.0:

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from .. import featurefile as ff
 from ..match import match_descriptors
-from ..images import read_image
+from ..images import read_image, resized_to_original_matrix
 from ..runtime import package_versions
 from . import metrics
 from .datasets import Sequence, find_sequences
@@ -44,11 +44,6 @@ class HomographyConfig:
         return f"r{self.resize_max or 'full'}-c{self.crop_multiple}"
 
 
-def _pixel_scale(sx: float, sy: float) -> np.ndarray:
-    """3x3 map from resized to original pixels, pixel-centre convention: x_o = sx (x_r + 0.5) - 0.5."""
-    return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1.0]])
-
-
 def _prepare_image(source: Path, target: Path, config: HomographyConfig) -> np.ndarray:
     """Resize + crop one image into the cache (once); returns its resized->original pixel map."""
     image = read_image(source, grayscale=False)
@@ -63,7 +58,7 @@ def _prepare_image(source: Path, target: Path, config: HomographyConfig) -> np.n
         tmp = target.with_name("tmp-" + target.name)
         cv2.imwrite(str(tmp), cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
         tmp.replace(target)
-    return _pixel_scale(w / new_w, h / new_h)
+    return resized_to_original_matrix(w / new_w, h / new_h)
 
 
 def prepare_images(sequences: list[Sequence], cache: Path, config: HomographyConfig) -> dict[str, np.ndarray]:

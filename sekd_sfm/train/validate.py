@@ -18,7 +18,9 @@ import torch
 from torch import nn
 
 from ..errors import SekdError
-from ..images import IMAGE_EXTENSIONS, read_image, resize_max_side
+from ..bench import metrics
+from ..images import IMAGE_EXTENSIONS, read_image, resize_max_side, resized_to_original_matrix
+from ..match import match_descriptors
 from ..inference import SEKDConfig, SEKDExtractor
 from ..runtime import shared_dir
 from .model import plain_copy
@@ -55,15 +57,10 @@ def _image_file(folder: Path, index: int) -> Path:
     raise SekdError(f"{folder}: image {index}.* missing")
 
 
-def _to_small(sx: float, sy: float) -> np.ndarray:
-    """Matrix mapping resized pixels to original ones (pixel-centre convention)."""
-    return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1.0]])
-
-
 def _prepare(path: Path, long_side: int) -> tuple[np.ndarray, np.ndarray]:
     image, sx, sy = resize_max_side(read_image(path), long_side or None)
     h, w = image.shape
-    return np.ascontiguousarray(image[: h - h % 16, : w - w % 16]), _to_small(sx, sy)
+    return np.ascontiguousarray(image[: h - h % 16, : w - w % 16]), resized_to_original_matrix(sx, sy)
 
 
 @lru_cache(maxsize=32)
@@ -81,38 +78,21 @@ def load_sequence(folder: Path, long_side: int) -> Sequence:
 
 
 def mutual_matches(desc1: np.ndarray, desc2: np.ndarray) -> np.ndarray:
-    """Index pairs ``M x 2`` of mutual nearest neighbours between unit descriptors ``N1 x D``, ``N2 x D``."""
-    if len(desc1) == 0 or len(desc2) == 0:
-        return np.zeros((0, 2), np.int64)
-    sim = desc1 @ desc2.T
-    nn12, nn21 = sim.argmax(1), sim.argmax(0)
-    ids = np.arange(len(desc1))
-    keep = nn21[nn12] == ids
-    return np.stack([ids[keep], nn12[keep]], axis=1)
-
-
-def project(h: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Apply a 3x3 homography to ``N x 2`` points."""
-    p = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ h.T
-    return p[:, :2] / p[:, 2:3]
+    """Index pairs ``M x 2`` of mutual nearest neighbours between descriptors ``N1 x D``, ``N2 x D``."""
+    matches0, _ = match_descriptors(desc1, desc2, mode="mnn", device="cpu")
+    keep = matches0 >= 0
+    return np.stack([np.nonzero(keep)[0], matches0[keep]], axis=1).astype(np.int64)
 
 
 def pair_scores(kp1: np.ndarray, kp2: np.ndarray, matches: np.ndarray, h_gt: np.ndarray,
                 shape1: tuple[int, int]) -> tuple[np.ndarray, float]:
     """(MMA at each threshold, corner error of the RANSAC homography; inf when estimation fails)."""
-    if len(matches) == 0:
-        return np.zeros(len(THRESHOLDS)), float("inf")
-    p1, p2 = kp1[matches[:, 0]].astype(np.float64), kp2[matches[:, 1]].astype(np.float64)
-    err = np.linalg.norm(project(h_gt, p1) - p2, axis=1)
-    mma = np.array([(err <= t).mean() for t in THRESHOLDS])
+    p1, p2 = kp1.astype(np.float64), kp2.astype(np.float64)
+    mma = metrics.match_accuracy(p1, p2, matches, h_gt, THRESHOLDS)
     if len(matches) < 4:
         return mma, float("inf")
-    h_est, _ = cv2.findHomography(p1, p2, cv2.RANSAC)
-    if h_est is None:
-        return mma, float("inf")
-    hh, ww = shape1
-    corners = np.array([[0, 0], [ww - 1, 0], [0, hh - 1], [ww - 1, hh - 1]], np.float64)
-    return mma, float(np.linalg.norm(project(h_est, corners) - project(h_gt, corners), axis=1).mean())
+    h_est, _ = cv2.findHomography(p1[matches[:, 0]], p2[matches[:, 1]], cv2.RANSAC)
+    return mma, metrics.corner_error(h_est, h_gt, shape1[1], shape1[0])
 
 
 def evaluate(net: nn.Module, folders: list[Path], long_side: int, max_keypoints: int, threshold: float,
