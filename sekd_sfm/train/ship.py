@@ -1,0 +1,161 @@
+"""Ship a trained run's model as the package's embedded default, with its model card.
+
+``python -m sekd_sfm.train.ship RUN [--card docs/model_card.md]`` copies ``RUN/best.pth``
+(weights and metadata, fp32) to ``sekd_sfm/models/sekd_default.pth`` and writes a model
+card that says what the model was trained on, how, for how long, and its checksum.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import re
+from datetime import datetime
+from pathlib import Path
+
+import torch
+
+from ..errors import SekdError
+from ..network import SEKDNet
+from ..runtime import shared_dir
+from ..weights import EMBEDDED_MODEL, file_sha256, load_model
+from .config import TrainConfig, load_run_config, schedule_config
+from .report import write_atomic
+
+MAX_BYTES = 3_000_000  # the package carries the model: keep the wheel small
+_STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),\d+ ")
+_START = re.compile(r"(new|resumed) run in ")
+
+
+def training_wall_seconds(log: Path) -> float:
+    """Seconds spent training: per process run of ``train.log``, last line minus first, summed.
+
+    A run resumed days later contributes only its own span, not the pause.
+    """
+    total, first, last = 0.0, None, None
+    for line in Path(log).read_text().splitlines():
+        match = _STAMP.match(line)
+        if not match:
+            continue
+        stamp = datetime.strptime(match.group(1), "%Y-%m-%d %H:%M:%S")
+        if _START.search(line) and first is not None:
+            total += (last - first).total_seconds()
+            first = None
+        first, last = first or stamp, stamp
+    return total + ((last - first).total_seconds() if first else 0.0)
+
+
+def evolve_command(config: TrainConfig, run: Path) -> str:
+    """The ``sekd evolve`` command that starts this run: schedule, seed and every changed field."""
+    base = schedule_config(config.schedule)
+    changed = [f"--set {f.name}={json.dumps(getattr(config, f.name))}" for f in dataclasses.fields(TrainConfig)
+               if f.name not in ("schedule", "images", "seed", "num_threads", "num_workers", "progress", "device")
+               and getattr(config, f.name) != getattr(base, f.name)]
+    return " ".join([f"sekd evolve --images {_display_path(config.images)} --schedule {config.schedule}",
+                     f"--seed {config.seed} --out {run}", *changed])
+
+
+def _display_path(path: str) -> str:
+    """Paths under the shared data folder as ``../shared/...`` (machine-independent)."""
+    try:
+        return "../shared/" + Path(path).resolve().relative_to(shared_dir().resolve()).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None, which: str = "best.pth") -> Path:
+    """Copy ``run/which`` to ``dest`` with its training facts; write the model card; return ``dest``."""
+    run = Path(run)
+    source = run / which
+    net, info = load_model(source)  # refuses anything that is not an exact SEKD checkpoint
+    config = load_run_config(run / "config.yaml")
+    meta = dict(info.meta, shipped_from=str(run.name), source_sha256=info.sha256,
+                wall_seconds=round(training_wall_seconds(run / "train.log")),
+                command=evolve_command(config, run), data=_display_path(config.images))
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dest.with_name(dest.name + ".tmp")
+    torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)
+    size = tmp.stat().st_size
+    if size > MAX_BYTES:
+        tmp.unlink()
+        raise SekdError(f"{source}: {dest.name} would be {size} bytes, over {MAX_BYTES}; ship a smaller model")
+    tmp.replace(dest)
+    if card is not None:
+        write_atomic(Path(card), model_card(run, dest, meta))
+    return dest
+
+
+def _validation_rows(run: Path) -> list[str]:
+    rows = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else []
+    lines = ["| after | MMA@3 | MMA@3 i | MMA@3 v | HA@3 | Avg.HA@1:10 | matches |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['task']} | {r['mma3']:.3f} | {r['mma3_i']:.3f} | {r['mma3_v']:.3f} | {r['ha3']:.2f} | "
+                     f"{r['ha_avg']:.3f} | {r['matches']:.0f} |")
+    return lines
+
+
+def _label_rows(run: Path) -> list[str]:
+    history = json.loads((run / "history.json").read_text())
+    lines = ["| labels | keypoints / image | images |", "|---|---|---|"]
+    lines += [f"| {r['task']} | {r['keypoints']:.1f} | {r['images']} |" for r in history["labels"]]
+    return lines
+
+
+def model_card(run: Path, model: Path, meta: dict) -> str:
+    """Markdown: what, data, schedule, command, wall time, seed, validation per round, checksum."""
+    config = meta["config"]
+    n_params = sum(p.numel() for p in SEKDNet().parameters())
+    hours = meta["wall_seconds"] / 3600
+    lines = [
+        "# Model card: the embedded default SEKD model",
+        "",
+        "Generated by `pipelines/train_default/ship.sh` (`python -m sekd_sfm.train.ship`) from the run in",
+        f"`pipelines/train_default/{run.name}/`; every figure below is read from that run folder.",
+        "",
+        "| | |",
+        "|---|---|",
+        f"| file | `sekd_sfm/models/{model.name}` ({model.stat().st_size:,} bytes, fp32) |",
+        f"| SHA-256 | `{file_sha256(model, 64)}` |",
+        f"| network | SEKD (the paper's architecture), {n_params:,} parameters |",
+        f"| chosen | `{meta['task']}` (round {meta['round']}, step {meta['step']}): best validation {meta['best_by']} |",
+        f"| data | `{meta['data']}`: 256 unlabeled COCO photos, no labels of any kind |",
+        f"| schedule | `{config['schedule']}`: {config['rounds']} rounds, subset 1/{config['subset_factor']} of the images "
+        f"per round, long side {config['long_side']} px, crops {config['crop_height']}x{config['crop_width']}, "
+        f"batch {config['batch_size']}, {config['epochs_desc']} + {config['epochs_det']} epochs per step, "
+        f"lr {config['lr']} |",
+        f"| seed | {config['seed']} |",
+        f"| wall time | {hours:.2f} h of training on a 2-core CPU (no GPU), summed over the resumed sessions |",
+        f"| command | `{meta['command']}` (resumed with `sekd evolve --resume --out ...`) |",
+        "",
+        "## Validation during training",
+        "",
+        f"Homography sequences of the shared data at long side {config['val_long_side']} px, "
+        f"top {config['val_max_keypoints']} keypoints, mutual NN (`train/validate.py`).",
+        "",
+        *_validation_rows(run),
+        "",
+        "## Self-labelled keypoints per image",
+        "",
+        *_label_rows(run),
+        "",
+        "Benchmarks against the authors' model, the classics and the kornia peers: the README's",
+        "Figures section and [benchmarks.md](benchmarks.md).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path, help="run folder of sekd evolve")
+    parser.add_argument("--which", default="best.pth", help="checkpoint in the run folder (default best.pth)")
+    parser.add_argument("--dest", type=Path, default=EMBEDDED_MODEL)
+    parser.add_argument("--card", type=Path, default=None, help="write the model card here (Markdown)")
+    args = parser.parse_args(argv)
+    dest = ship_model(args.run, args.dest, args.card, args.which)
+    print(f"{dest}: {dest.stat().st_size:,} bytes, sha256 {file_sha256(dest, 64)}")
+
+
+if __name__ == "__main__":
+    main()
