@@ -117,6 +117,33 @@ def pose(scenes, methods, output, max_keypoints, resize_max, precision, weights)
     click.echo(f"results: {path}")
 
 
+_RESULTS = click.Path(dir_okay=False, exists=True, path_type=Path)
+
+
+@bench.command()
+@click.option("--homography", "homography_results", type=_RESULTS, help="results.json of `bench homography`.")
+@click.option("--pose", "pose_results", type=_RESULTS, help="results.json of `bench pose`.")
+@click.option("--sfm", "sfm_results", type=_RESULTS, help="results.json of `bench sfm`.")
+@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=Path("bench-summary"),
+              show_default=True, help="Folder for summary.md and summary.png.")
+@click.option("--highlight", multiple=True, help="Method label drawn in a different colour (repeatable).")
+def summary(homography_results, pose_results, sfm_results, output, highlight) -> None:
+    """One table and one plot joining the homography, pose and SfM results by method label.
+
+    \b
+    Example:
+      sekd bench summary --homography out/hom/results.json --pose out/pose/results.json \\
+          --sfm out/sfm/results.json -o out/summary --highlight sekd_ours
+    """
+    from sekd_sfm.bench.summary import write_summary
+
+    if not (homography_results or pose_results or sfm_results):
+        raise click.UsageError("give at least one of --homography, --pose, --sfm")
+    path = write_summary(output, homography_results, pose_results, sfm_results, tuple(highlight))
+    click.echo(path.read_text())
+    click.echo(f"summary: {path} and {path.with_suffix('.png')}")
+
+
 from . import bench_sfm  # noqa: E402  (SfM benchmarks live in their own module)
 
 bench.add_command(bench_sfm.sfm)

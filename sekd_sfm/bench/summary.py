@@ -1,0 +1,113 @@
+"""One table and one plot from the three benchmarks' results.json files (homography, pose, SfM).
+
+Each benchmark keeps its own report; this joins them by method label, so every method's
+row reads: homography Avg.HA@1:10 overall / i / v and MMA@3, relative-pose mAA, and SfM
+(registered images, pose mAA, median rotation error, wall time).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+COLUMNS = ("avg_ha_all", "avg_ha_i", "avg_ha_v", "mma3", "pose_maa", "sfm_registered", "sfm_maa", "sfm_rot_deg",
+           "sfm_time_s")
+HEADERS = ("Avg.HA@1:10", "i", "v", "MMA@3", "pose mAA", "SfM registered", "SfM mAA", "SfM rot. err (deg)",
+           "SfM time (s)")
+
+
+def _read(path: Path | None) -> dict | None:
+    return json.loads(Path(path).read_text()) if path else None
+
+
+def _homography_rows(results: dict) -> dict[str, dict]:
+    rows = {}
+    for label, entry in results["methods"].items():
+        if "summary" in entry:
+            s = entry["summary"]
+            rows[label] = {"avg_ha_all": s["avg_ha_all"], "avg_ha_i": s["avg_ha_i"], "avg_ha_v": s["avg_ha_v"],
+                           "mma3": s["mma"][2]}
+    return rows
+
+
+def _pose_rows(results: dict) -> dict[str, dict]:
+    return {label: {"pose_maa": e["summary"]["maa"]} for label, e in results["methods"].items() if "summary" in e}
+
+
+def _sfm_rows(results: dict) -> dict[str, dict]:
+    images = results["images"]
+    return {r["method"]: {"sfm_registered": f"{r['registered_images']}/{images}", "sfm_maa": r.get("maa"),
+                          "sfm_rot_deg": r.get("median_rotation_deg"), "sfm_time_s": r["wall_time_s"]}
+            for r in results["results"]}
+
+
+def summary_rows(homography: dict | None, pose: dict | None, sfm: dict | None) -> dict[str, dict]:
+    """Method label -> the COLUMNS it has, in the order the methods first appear."""
+    rows: dict[str, dict] = {}
+    for part, reader in ((homography, _homography_rows), (pose, _pose_rows), (sfm, _sfm_rows)):
+        for label, values in (reader(part) if part else {}).items():
+            rows.setdefault(label, {}).update(values)
+    return rows
+
+
+def _cell(key: str, value) -> str:
+    if value is None:
+        return ""
+    if key in ("avg_ha_all", "avg_ha_i", "avg_ha_v", "mma3"):
+        return f"{100 * value:.1f}"
+    if key in ("pose_maa", "sfm_maa", "sfm_rot_deg"):
+        return f"{value:.3f}"
+    return f"{value:.0f}" if isinstance(value, float) else str(value)
+
+
+def summary_markdown(rows: dict[str, dict], sources: dict[str, str]) -> str:
+    """The joined table; ``sources`` names the results file behind each benchmark."""
+    lines = ["| method | " + " | ".join(HEADERS) + " |", "|---|" + "---|" * len(HEADERS)]
+    for label, row in rows.items():
+        lines.append(f"| {label} | " + " | ".join(_cell(k, row.get(k)) for k in COLUMNS) + " |")
+    notes = [f"{name}: `{path}`" for name, path in sources.items() if path]
+    return "\n".join(lines) + "\n\nFrom " + "; ".join(notes) + ".\n"
+
+
+def plot_summary(rows: dict[str, dict], output: Path, highlight: tuple[str, ...] = ()) -> Path:
+    """summary.png: one horizontal bar panel per headline metric, methods in table order."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("avg_ha_all", "homography Avg.HA@1:10 (%)", 100), ("mma3", "homography MMA@3 (%)", 100),
+              ("pose_maa", "fountain-P11 pose mAA", 1), ("sfm_maa", "fountain-P11 SfM pose mAA", 1)]
+    labels = list(rows)
+    fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 0.35 * len(labels) + 1.5), sharey=True)
+    for ax, (key, title, scale) in zip(axes, panels):
+        values = [scale * rows[m][key] if rows[m].get(key) is not None else 0.0 for m in labels]
+        colours = ["tab:red" if m in highlight else "tab:blue" for m in labels]
+        ax.barh(range(len(labels)), values, color=colours)
+        for y, value in enumerate(values):
+            if value:
+                ax.text(value, y, f" {value:.{0 if scale == 100 else 2}f}", va="center", fontsize=7)
+        ax.set_xlim(0, 1.15 * max(values + [1e-9]))
+        ax.set_title(title, fontsize=10)
+        ax.grid(axis="x", alpha=0.3)
+    axes[0].set_yticks(range(len(labels)), labels)
+    axes[0].invert_yaxis()
+    fig.tight_layout()
+    path = Path(output) / "summary.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_summary(output: Path, homography: Path | None = None, pose: Path | None = None, sfm: Path | None = None,
+                  highlight: tuple[str, ...] = ()) -> Path:
+    """summary.md and summary.png in ``output`` from any of the three results.json; returns summary.md."""
+    rows = summary_rows(_read(homography), _read(pose), _read(sfm))
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    sources = {"homography": homography, "pose": pose, "SfM": sfm}
+    path = output / "summary.md"
+    tmp = path.with_suffix(".md.tmp")
+    tmp.write_text(summary_markdown(rows, {k: str(v) if v else "" for k, v in sources.items()}))
+    tmp.replace(path)
+    plot_summary(rows, output, highlight)
+    return path
