@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from sekd_sfm.train.config import TrainConfig
-from sekd_sfm.train.labels import (Labels, average_detections, fused_reliability, label_one, random_keypoints,
+from sekd_sfm.train.labels import (Labels, average_detections, keep_with_floor, fused_reliability, label_one, random_keypoints,
                                    reliability_scale, select_keypoints)
 from sekd_sfm.train.model import BlockDiagonalConvTranspose2d, new_network, use_fast_deconv
 
@@ -181,3 +181,30 @@ def test_no_affine_uses_the_target_view_in_a_and_one_warp_in_c(monkeypatch):
         for kind in ("a", "c"):
             label_one(net, rgb, np.random.default_rng(1), kind, cfg, torch.device("cpu"))
     assert seen == [4, 4, 1, 2]  # target + m warps; no_affine: target only (a), target + 1 warp (c)
+
+
+def _candidates() -> Labels:
+    labels = Labels("c", 1)
+    labels.scores = {0: np.array([0.9, 0.5, 0.2], np.float32), 1: np.array([0.95, 0.3], np.float32)}
+    labels.keypoints = {i: np.arange(2 * len(s), dtype=np.int32).reshape(-1, 2) for i, s in labels.scores.items()}
+    return labels
+
+
+@pytest.mark.parametrize("min_mean, threshold, kept", [
+    (0, 0.85, {0: [0.9], 1: [0.95]}),              # no floor: the fixed threshold (strictly above)
+    (1, 0.85, {0: [0.9], 1: [0.95]}),              # 2 above 0.85 already reach 1 per image
+    (2, 0.3, {0: [0.9, 0.5], 1: [0.95, 0.3]}),     # 4 needed: lowered to the 4th best score
+    (10, 0.2, {0: [0.9, 0.5, 0.2], 1: [0.95, 0.3]}),  # more than there are: every candidate
+])
+def test_reliability_threshold_is_lowered_to_keep_the_floor(min_mean, threshold, kept):
+    labels = _candidates()
+    keep_with_floor(labels, 0.85, min_mean)
+    assert labels.threshold == pytest.approx(threshold)
+    assert {i: s.tolist() for i, s in labels.scores.items()} == {i: pytest.approx(v) for i, v in kept.items()}
+    assert [len(k) for k in labels.keypoints.values()] == [len(v) for v in kept.values()]
+
+
+def test_threshold_floor_on_no_candidates():
+    labels = Labels("c", 0)
+    keep_with_floor(labels, 0.85, 100)
+    assert labels.threshold == 0.85 and labels.mean_keypoints == 0.0

@@ -79,6 +79,7 @@ class TrainConfig:
     max_keypoints: int = 500
     det_threshold: float = 0.46
     rel_threshold: float = 0.85
+    rel_min_keypoints: float = 0.0   # lower rel_threshold for a step whose labels average fewer (0: fixed)
     det_border_factor: float = 1.0   # (a): drop keypoints closer than factor * nms_radius to a border
     rel_border_factor: float = 4.0   # (c): same, 4r in the code
     rel_radius: int = 3              # distinctness neighbourhood, map pixels (lattice -3..3)

@@ -197,15 +197,20 @@ class Runner:
         labels = label_images(self.net, self.images, indices, task.kind, task.round, self.cfg, self.ctx,
                               self.cfg.progress)
         n = labels.mean_keypoints
-        logger.info("round %d labels (%s): %.1f keypoints per image over %d images, background weight %.3g",
-                    task.round, task.kind, n, len(indices), labels.bg_weight)
+        logger.info("round %d labels (%s): %.1f keypoints per image over %d images, background weight %.3g%s",
+                    task.round, task.kind, n, len(indices), labels.bg_weight,
+                    "" if labels.threshold is None else f", score threshold {labels.threshold:.4g}")
+        if task.kind == "c" and labels.threshold is not None and labels.threshold < self.cfg.rel_threshold:
+            logger.info("rel_threshold %.4g lowered to %.4g to keep %g keypoints per image (rel_min_keypoints)",
+                        self.cfg.rel_threshold, labels.threshold, self.cfg.rel_min_keypoints)
         if task.kind != "a0" and n < 0.2 * self.cfg.max_keypoints:
             logger.warning("few keypoints per image (%.1f); consider lowering %s", n,
-                           "det_threshold" if task.kind == "a" else "rel_threshold")
+                           "det_threshold" if task.kind == "a" else "rel_threshold or raising rel_min_keypoints")
         if self.ctx.main:
             labels.save(self.folder.labels_path(task.id))
             self.history.add("labels", {"task": task.id, "round": task.round, "kind": task.kind,
-                                        "keypoints": n, "images": len(indices), "bg_weight": labels.bg_weight})
+                                        "keypoints": n, "images": len(indices), "bg_weight": labels.bg_weight,
+                                        "threshold": labels.threshold})
             self.history.save(plot=False)
         barrier(self.ctx)
 

@@ -34,6 +34,7 @@ class Labels:
     scores: dict[int, np.ndarray] = field(default_factory=dict)      # image index -> N float32
     sizes: dict[int, tuple[int, int]] = field(default_factory=dict)  # image index -> (H, W)
     maps: dict[int, np.ndarray] = field(default_factory=dict)        # optional float16 score maps
+    threshold: float | None = None                                   # score threshold the keypoints passed
 
     @property
     def mean_keypoints(self) -> float:
@@ -318,7 +319,9 @@ def label_one(net: nn.Module, rgb: np.ndarray, rng: np.random.Generator, kind: s
         threshold, border = cfg.det_threshold, cfg.det_border_factor * cfg.nms_radius
     else:
         score = fused_reliability(desc, feat, grids, cfg)
-        threshold, border = cfg.rel_threshold, cfg.rel_border_factor * cfg.nms_radius
+        # With a keypoint floor, keep every NMS candidate; label_images picks the threshold over all images.
+        threshold = 0.0 if cfg.rel_min_keypoints > 0 else cfg.rel_threshold
+        border = cfg.rel_border_factor * cfg.nms_radius
     score = score.cpu()
     xy, scores = select_keypoints(score, threshold, cfg.nms_radius, cfg.max_keypoints, border)
     return xy, scores, score
@@ -341,7 +344,28 @@ def label_images(net: nn.Module, images: TrainImages, indices: list[int], kind: 
             part.maps[i] = score.numpy().astype(np.float16)
         bar.set_postfix(kp=len(xy))
     net.train(was_training)
-    return _merge(gather_objects(ctx, part), kind, round_index)
+    labels = _merge(gather_objects(ctx, part), kind, round_index)
+    if kind == "a":
+        labels.threshold = cfg.det_threshold
+    elif kind == "c":
+        keep_with_floor(labels, cfg.rel_threshold, cfg.rel_min_keypoints)
+    return labels
+
+
+def keep_with_floor(labels: Labels, threshold: float, min_mean: float) -> None:
+    """Keep keypoints scoring above ``threshold``, lowered if needed so the images keep ``min_mean``
+    keypoints on average (SPEC_TRAINING §9: lower t_rel when the mean falls below ~100).
+
+    The labels hold every NMS candidate (found with threshold 0, by decreasing score), so a lower
+    threshold selects exactly what NMS with that threshold would have. ``min_mean`` 0: fixed threshold.
+    """
+    need = int(np.ceil(min_mean * len(labels.scores)))
+    every = np.sort(np.concatenate(list(labels.scores.values()) or [np.zeros(0, np.float32)]))[::-1]
+    lowered = 0 < need and int((every > threshold).sum()) < need and len(every) > 0
+    labels.threshold = float(every[min(need, len(every)) - 1]) if lowered else threshold
+    for i, scores in labels.scores.items():
+        keep = scores >= labels.threshold if lowered else scores > threshold
+        labels.keypoints[i], labels.scores[i] = labels.keypoints[i][keep], scores[keep]
 
 
 def _merge(parts: list[Labels], kind: str, round_index: int) -> Labels:
