@@ -12,7 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from . import featurefile as ff
-from .errors import SekdError
+from .errors import Interrupted, SekdError
 from .features import FeatureConfig, build_extractor
 from .images import ImageReadError, list_images, read_image, resize_max_side, to_original_pixels
 from .runtime import package_versions, set_num_threads
@@ -132,7 +132,7 @@ def _run(extractor, image_dir, todo, config, parts, output, strict, progress, ch
     except KeyboardInterrupt:
         bar.close()
         saved = ff.merge_parts(output, parts)
-        raise SekdError(f"interrupted: {saved} more images saved in {output}; run the same command again to resume") from None
+        raise Interrupted(f"interrupted: {saved} more images saved in {output}; run the same command again to resume") from None
     finally:
         bar.close()
     return failed

@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from . import featurefile as ff
 from . import matchfile as mf
-from .errors import SekdError
+from .errors import Interrupted, SekdError
 from .pairs import Pair, read_pairs
 from .runtime import package_versions, resolve_device, set_num_threads
 
@@ -370,7 +370,7 @@ def _run(features, todo, sizes, binary, described, config, parts, output, progre
     except KeyboardInterrupt:
         bar.close()
         saved = ff.merge_parts(output, parts, write_group=mf.write_pair_group)
-        raise SekdError(f"interrupted: {saved} more pairs saved in {output}; run the same command again to resume") from None
+        raise Interrupted(f"interrupted: {saved} more pairs saved in {output}; run the same command again to resume") from None
     finally:
         bar.close()
 

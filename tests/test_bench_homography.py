@@ -111,3 +111,20 @@ def test_cli_skips_absent_peer_weights(tmp_path, monkeypatch, caplog):
                                        "-o", str(tmp_path / "out"), "--resize-max", "0"])
     assert result.exit_code == 0, result.output
     assert "skipping disk" in caplog.text and "| sift |" in result.output and "| disk |" not in result.output
+
+
+def test_an_interrupt_stops_the_whole_benchmark(tmp_path, monkeypatch):
+    """Ctrl-C / SIGTERM during one method's extraction must not be reported as that method failing."""
+    from sekd_sfm.bench import homography
+    from sekd_sfm.errors import Interrupted
+
+    make_sequence(tmp_path / "data", "v_shift")
+
+    def interrupted(*args, **kwargs):
+        raise Interrupted("interrupted: 0 more images saved; run the same command again to resume")
+
+    monkeypatch.setattr(homography, "cached_features", interrupted)
+    with pytest.raises(Interrupted):
+        run_homography_benchmark([tmp_path / "data"], [parse_method("sift"), parse_method("orb")], tmp_path / "out",
+                                 HomographyConfig(resize_max=None))
+    assert not (tmp_path / "out/results.json").exists()

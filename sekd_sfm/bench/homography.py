@@ -19,6 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import featurefile as ff
+from ..errors import Interrupted
 from ..match import match_descriptors
 from ..images import read_image, resized_to_original_matrix
 from ..runtime import package_versions
@@ -133,6 +134,8 @@ def run_homography_benchmark(roots: list[Path], methods: list[Method], output: P
             features, seconds = cached_features(method, feature_config, cache / "images", cache, config.image_tag())
             binary = ff.read_attrs(features)["descriptor_dtype"] == "uint8"
             pairs = evaluate_method(features, sequences, scales, binary)
+        except (Interrupted, KeyboardInterrupt):
+            raise  # the user stopped the whole benchmark, not this method
         except Exception as exc:  # noqa: BLE001 - one failing method is reported, not fatal
             logger.warning("%s failed: %s", method.label, exc)
             results["methods"][method.label] = {"error": str(exc)}

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import featurefile as ff
-from ..errors import SekdError
+from ..errors import Interrupted, SekdError
 from ..match import DEFAULT_RATIO, FALLBACK_RATIO, ROOTSIFT_FEATURES, match_descriptors
 from ..runtime import package_versions
 from . import metrics
@@ -115,6 +115,8 @@ def run_pose_benchmark(scene_dirs: list[Path], methods: list[Method], output: Pa
     for method in available(methods):
         try:
             pairs = _evaluate_method(method, scenes, Path(output) / "cache", config)
+        except (Interrupted, KeyboardInterrupt):
+            raise  # the user stopped the whole benchmark, not this method
         except Exception as exc:  # noqa: BLE001 - one failing method is reported, not fatal
             logger.warning("%s failed: %s", method.label, exc)
             results["methods"][method.label] = {"error": str(exc)}
