@@ -1,7 +1,7 @@
 # CPU image of sekd: `docker build -t sekd .`
 # Run on a folder of photos mounted at /data:
 #   docker run --rm -v "$PWD/photos:/data/photos" -v "$PWD/out:/data/out" sekd \
-#       extract /data/photos -o /data/out/features.h5 --weights /data/out/sekd.pth
+#       extract /data/photos -o /data/out/features.h5      (the embedded model; --weights for another)
 # To get the small CPU-only torch build instead of PyPI's default, pass the CPU wheel index
 # of PyTorch with --build-arg PIP_TORCH_ARGS="--index-url <cpu wheel index>".
 FROM python:3.11-slim

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The paper's evaluations on the shared data, every method side by side.
-# Usage: pipelines/paper_benchmarks.sh [OUT_DIR]   (SEKD_SHARED defaults to ../shared)
+# Usage: pipelines/paper_benchmarks.sh [OUT_DIR]   (SEKD_SHARED defaults to ../shared;
+#        SKIP_SPEED=1 skips the speed benchmark). With the embedded model, it is `sekd_ours`.
 # Re-running is cheap: each benchmark caches its extracted features under OUT_DIR.
 set -euo pipefail
 OUT=${1:-bench-results}
@@ -15,6 +16,9 @@ fi
 CLASSIC=(-m sift -m orb -m akaze -m brisk -m kaze)
 PEERS=(-m disk -m aliked -m xfeat)
 
-sekd bench speed --weights "$W/sekd.pth" -o "$OUT/speed.json"
+[ -n "${SKIP_SPEED:-}" ] || sekd bench speed --weights "$W/sekd.pth" -o "$OUT/speed.json"
 sekd bench homography "${CLASSIC[@]}" "${PEERS[@]}" "${SEKD_METHODS[@]}" -o "$OUT/homography"
 sekd bench pose "${CLASSIC[@]}" "${PEERS[@]}" "${SEKD_METHODS[@]}" -o "$OUT/pose"
+sekd bench sfm fountain-P11 "${CLASSIC[@]}" "${PEERS[@]}" "${SEKD_METHODS[@]}" -o "$OUT/sfm"
+sekd bench summary --homography "$OUT/homography/results.json" --pose "$OUT/pose/results.json" \
+    --sfm "$OUT/sfm/results.json" -o "$OUT/summary" --highlight sekd_ours --highlight sekd_authors

@@ -63,8 +63,12 @@ def _display_path(path: str) -> str:
         return str(path)
 
 
-def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None, which: str = "best.pth") -> Path:
-    """Copy ``run/which`` to ``dest`` with its training facts; write the model card; return ``dest``."""
+def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None, which: str = "best.pth",
+               reference: Path | None = None) -> Path:
+    """Copy ``run/which`` to ``dest`` with its training facts; write the model card; return ``dest``.
+
+    ``reference``: another checkpoint (the authors') scored by the run's own validation for the card.
+    """
     run = Path(run)
     source = run / which
     net, info = load_model(source)  # refuses anything that is not an exact SEKD checkpoint
@@ -82,12 +86,23 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
         raise SekdError(f"{source}: {dest.name} would be {size} bytes, over {MAX_BYTES}; ship a smaller model")
     tmp.replace(dest)
     if card is not None:
-        write_atomic(Path(card), model_card(run, dest, meta))
+        baseline = reference_validation(reference, config) if reference else None
+        write_atomic(Path(card), model_card(run, dest, meta, baseline))
     return dest
 
 
-def _validation_rows(run: Path) -> list[str]:
+def reference_validation(reference: Path, config: TrainConfig) -> dict:
+    """The run's validation (same sequences, size, keypoints) of another checkpoint, labelled by its file."""
+    from .validate import evaluate, find_sequences
+
+    metrics = evaluate(load_model(reference)[0], find_sequences(config.val_sets), config.val_long_side,
+                       config.val_max_keypoints, config.val_threshold, config.val_nms_radius, torch.device("cpu"))
+    return {"task": f"`{Path(reference).name}` (reference)", **metrics}
+
+
+def _validation_rows(run: Path, baseline: dict | None) -> list[str]:
     rows = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else []
+    rows += [baseline] if baseline else []
     lines = ["| after | MMA@3 | MMA@3 i | MMA@3 v | HA@3 | Avg.HA@1:10 | matches |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['task']} | {r['mma3']:.3f} | {r['mma3_i']:.3f} | {r['mma3_v']:.3f} | {r['ha3']:.2f} | "
@@ -102,7 +117,13 @@ def _label_rows(run: Path) -> list[str]:
     return lines
 
 
-def model_card(run: Path, model: Path, meta: dict) -> str:
+def _progress(run: Path, config: dict) -> str:
+    done = json.loads((run / "state.json").read_text())["done"]
+    rounds = len({t.split("_")[0] for t in done if t.endswith("_d")})
+    return f"tasks done: {', '.join(done)} ({rounds} of {config['rounds']} rounds)"
+
+
+def model_card(run: Path, model: Path, meta: dict, baseline: dict | None = None) -> str:
     """Markdown: what, data, schedule, command, wall time, seed, validation per round, checksum."""
     config = meta["config"]
     n_params = sum(p.numel() for p in SEKDNet().parameters())
@@ -125,6 +146,7 @@ def model_card(run: Path, model: Path, meta: dict) -> str:
         f"batch {config['batch_size']}, {config['epochs_desc']} + {config['epochs_det']} epochs per step, "
         f"lr {config['lr']} |",
         f"| seed | {config['seed']} |",
+        f"| progress | {_progress(run, config)} |",
         f"| wall time | {hours:.2f} h of training on a 2-core CPU (no GPU), summed over the resumed sessions |",
         f"| command | `{meta['command']}` (resumed with `sekd evolve --resume --out ...`) |",
         "",
@@ -133,7 +155,7 @@ def model_card(run: Path, model: Path, meta: dict) -> str:
         f"Homography sequences of the shared data at long side {config['val_long_side']} px, "
         f"top {config['val_max_keypoints']} keypoints, mutual NN (`train/validate.py`).",
         "",
-        *_validation_rows(run),
+        *_validation_rows(run, baseline),
         "",
         "## Self-labelled keypoints per image",
         "",
@@ -152,8 +174,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--which", default="best.pth", help="checkpoint in the run folder (default best.pth)")
     parser.add_argument("--dest", type=Path, default=EMBEDDED_MODEL)
     parser.add_argument("--card", type=Path, default=None, help="write the model card here (Markdown)")
+    parser.add_argument("--reference", type=Path, default=None,
+                        help="checkpoint scored by the same validation for the card (e.g. the authors' sekd.pth)")
     args = parser.parse_args(argv)
-    dest = ship_model(args.run, args.dest, args.card, args.which)
+    dest = ship_model(args.run, args.dest, args.card, args.which, args.reference)
     print(f"{dest}: {dest.stat().st_size:,} bytes, sha256 {file_sha256(dest, 64)}")
 
 
