@@ -104,8 +104,10 @@ def extract_features(
     todo = [k for k in keys if k not in done]
     logger.info("%s: %d images, %d already done, %d to extract", image_dir, len(keys), len(keys) - len(todo), len(todo))
     failed = _run(extractor, image_dir, todo, config, parts, output, strict, progress, checkpoint_seconds)
-    merged = ff.merge_parts(output, parts, {"failed_images": ff.json_attr(failed)})
-    logger.info("%s: %d images written this run, %d failed, %d in the file", output, merged, len(failed), len(done) + merged)
+    ff.merge_parts(output, parts, {"failed_images": ff.json_attr(failed)})
+    # Parts are also merged every checkpoint_seconds, so count the file, not the last merge.
+    total = len(ff.list_keys(output))
+    logger.info("%s: %d images written this run, %d failed, %d in the file", output, total - len(done), len(failed), total)
     return output
 
 

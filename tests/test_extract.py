@@ -196,3 +196,12 @@ def test_sigterm_stops_cleanly_and_the_next_run_completes(tmp_path):
     saved = ff.list_keys(out)
     extract_features(images, out, FeatureConfig(feature="sift"), progress=False)
     assert set(saved) <= set(ff.list_keys(out)) and len(ff.list_keys(out)) == 60
+
+
+def test_summary_line_counts_images_merged_at_checkpoints(tmp_path, caplog):
+    """Parts merged at a checkpoint during the run still count as written by it."""
+    write_images(tmp_path / "img", ["a.png", "b.png", "c.png"])
+    caplog.set_level("INFO", logger="sekd")
+    extract_features(tmp_path / "img", tmp_path / "f.h5", FeatureConfig(feature="sift"), progress=False,
+                     checkpoint_seconds=0.0)
+    assert "3 images written this run, 0 failed, 3 in the file" in caplog.text
