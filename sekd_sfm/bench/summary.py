@@ -81,7 +81,8 @@ def plot_summary(rows: dict[str, dict], output: Path, highlight: tuple[str, ...]
     fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 0.35 * len(labels) + 1.5), sharey=True)
     for ax, (key, title, scale) in zip(axes, panels):
         values = [scale * rows[m][key] if rows[m].get(key) is not None else 0.0 for m in labels]
-        colours = ["tab:red" if m in highlight else "tab:blue" for m in labels]
+        accents = dict(zip(highlight, ("tab:red", "tab:orange", "tab:green", "tab:purple")))
+        colours = [accents.get(m, "tab:blue") for m in labels]
         ax.barh(range(len(labels)), values, color=colours)
         for y, value in enumerate(values):
             if value:
