@@ -121,9 +121,10 @@ _RESULTS = click.Path(dir_okay=False, exists=True, path_type=Path)
 
 
 @bench.command()
-@click.option("--homography", "homography_results", type=_RESULTS, help="results.json of `bench homography`.")
-@click.option("--pose", "pose_results", type=_RESULTS, help="results.json of `bench pose`.")
-@click.option("--sfm", "sfm_results", type=_RESULTS, help="results.json of `bench sfm`.")
+@click.option("--homography", "homography_results", type=_RESULTS, multiple=True,
+              help="results.json of `bench homography` (repeatable: a later run's rows replace earlier ones).")
+@click.option("--pose", "pose_results", type=_RESULTS, multiple=True, help="results.json of `bench pose` (repeatable).")
+@click.option("--sfm", "sfm_results", type=_RESULTS, multiple=True, help="results.json of `bench sfm` (repeatable).")
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=Path("bench-summary"),
               show_default=True, help="Folder for summary.md and summary.png.")
 @click.option("--highlight", multiple=True, help="Method label drawn in a different colour (repeatable).")
@@ -139,7 +140,7 @@ def summary(homography_results, pose_results, sfm_results, output, highlight) ->
 
     if not (homography_results or pose_results or sfm_results):
         raise click.UsageError("give at least one of --homography, --pose, --sfm")
-    path = write_summary(output, homography_results, pose_results, sfm_results, tuple(highlight))
+    path = write_summary(output, list(homography_results), list(pose_results), list(sfm_results), tuple(highlight))
     click.echo(path.read_text())
     click.echo(f"summary: {path} and {path.with_suffix('.png')}")
 

@@ -128,3 +128,27 @@ def test_an_interrupt_stops_the_whole_benchmark(tmp_path, monkeypatch):
         run_homography_benchmark([tmp_path / "data"], [parse_method("sift"), parse_method("orb")], tmp_path / "out",
                                  HomographyConfig(resize_max=None))
     assert not (tmp_path / "out/results.json").exists()
+
+
+def test_feature_cache_follows_the_model_file_content(tmp_path, shared):
+    """A new model at the same path (e.g. a newly shipped embedded model) must not reuse cached features."""
+    import shutil
+
+    import torch
+
+    from sekd_sfm.bench.methods import cache_file
+    from sekd_sfm.weights import load_model, save_checkpoint
+
+    weights = tmp_path / "model.pth"
+    shutil.copy(SEKD_WEIGHTS, weights)
+    method = parse_method(f"mine=sekd:{weights}")
+    config = method.feature_config(500)
+    before = cache_file(method, config, tmp_path, tmp_path)
+    assert cache_file(method, config, tmp_path, tmp_path) == before
+    net = load_model(weights)[0]
+    with torch.no_grad():
+        next(net.parameters()).add_(1.0)
+    save_checkpoint(net, weights)
+    assert cache_file(method, config, tmp_path, tmp_path) != before
+    sift = parse_method("sift")
+    assert cache_file(sift, sift.feature_config(500), tmp_path, tmp_path).name.startswith("sift-")

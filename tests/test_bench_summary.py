@@ -41,3 +41,11 @@ def test_summary_files_and_table_cells(tmp_path):
 def test_cli_needs_at_least_one_results_file(tmp_path):
     result = CliRunner().invoke(sekd, ["bench", "summary", "-o", str(tmp_path)])
     assert result.exit_code == 2 and "give at least one of --homography" in result.output
+
+
+def test_a_later_run_replaces_the_rows_of_its_methods():
+    rerun = {"images": 11, "results": [{"method": "sift", "registered_images": 9, "maa": 0.5,
+                                        "median_rotation_deg": 1.0, "wall_time_s": 30.0}]}
+    rows = summary_rows(HOMOGRAPHY, None, [SFM, rerun])
+    assert rows["sift"]["sfm_registered"] == "9/11" and rows["sift"]["sfm_maa"] == 0.5
+    assert rows["sift"]["avg_ha_all"] == 0.784 and rows["pycolmap SIFT pipeline"]["sfm_registered"] == "10/11"

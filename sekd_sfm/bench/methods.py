@@ -20,6 +20,7 @@ from ..extract import extract_features
 from ..features import FEATURE_TYPES, FeatureConfig
 from ..features.peers import PEER_FEATURES, peer_weights_path
 from ..inference import SEKDConfig
+from ..weights import file_sha256, resolve_weights_path
 
 logger = logging.getLogger("sekd")
 
@@ -66,16 +67,24 @@ def available(methods: list[Method]) -> list[Method]:
     return kept
 
 
+def cache_file(method: Method, config: FeatureConfig, image_root: Path, cache: Path, tag: str = "") -> Path:
+    """``cache/LABEL-HASH.h5``: HASH covers the configuration, the images, ``tag`` and the SEKD model."""
+    # The SEKD checkpoint's content, not only its path: shipping a new embedded model (same
+    # path, weights None) or overwriting a .pth must not reuse the old model's features.
+    model = file_sha256(resolve_weights_path(config.weights)) if config.feature == "sekd" else ""
+    digest = hashlib.sha1(json.dumps([asdict(config), tag, str(Path(image_root).resolve()), model], sort_keys=True,
+                                     default=str).encode()).hexdigest()[:8]
+    return Path(cache) / f"{method.label}-{digest}.h5"
+
+
 def cached_features(method: Method, config: FeatureConfig, image_root: Path, cache: Path, tag: str = "") -> tuple[Path, float]:
     """Features of every image below ``image_root`` for one method, cached in ``cache``.
 
-    The file name carries a hash of the feature configuration (and ``tag``, e.g. the image
-    preparation), so a changed setting gets a new file. Returns the file and the seconds
+    The file name carries a hash of the feature configuration, the SEKD checkpoint's content
+    and ``tag`` (e.g. the image preparation), so a changed setting or model gets a new file. Returns the file and the seconds
     per image measured when it was extracted (decode + network + write).
     """
-    digest = hashlib.sha1(json.dumps([asdict(config), tag, str(Path(image_root).resolve())], sort_keys=True,
-                                     default=str).encode()).hexdigest()[:8]
-    output = Path(cache) / f"{method.label}-{digest}.h5"
+    output = cache_file(method, config, image_root, cache, tag)
     timing = output.with_suffix(".time.json")
     before = len(ff.list_keys(output)) if output.exists() else 0
     start = time.perf_counter()

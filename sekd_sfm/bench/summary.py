@@ -40,12 +40,17 @@ def _sfm_rows(results: dict) -> dict[str, dict]:
             for r in results["results"]}
 
 
-def summary_rows(homography: dict | None, pose: dict | None, sfm: dict | None) -> dict[str, dict]:
-    """Method label -> the COLUMNS it has, in the order the methods first appear."""
+def summary_rows(homography: dict | list | None, pose: dict | list | None, sfm: dict | list | None) -> dict[str, dict]:
+    """Method label -> the COLUMNS it has, in the order the methods first appear.
+
+    Each argument is one results dict or a list of them (several runs of one benchmark: a
+    later run's row replaces an earlier one's for the same label).
+    """
     rows: dict[str, dict] = {}
-    for part, reader in ((homography, _homography_rows), (pose, _pose_rows), (sfm, _sfm_rows)):
-        for label, values in (reader(part) if part else {}).items():
-            rows.setdefault(label, {}).update(values)
+    for parts, reader in ((homography, _homography_rows), (pose, _pose_rows), (sfm, _sfm_rows)):
+        for part in parts if isinstance(parts, list) else [parts] if parts else []:
+            for label, values in reader(part).items():
+                rows.setdefault(label, {}).update(values)
     return rows
 
 
@@ -64,7 +69,7 @@ def summary_markdown(rows: dict[str, dict], sources: dict[str, str]) -> str:
     lines = ["| method | " + " | ".join(HEADERS) + " |", "|---|" + "---|" * len(HEADERS)]
     for label, row in rows.items():
         lines.append(f"| {label} | " + " | ".join(_cell(k, row.get(k)) for k in COLUMNS) + " |")
-    notes = [f"{name}: `{path}`" for name, path in sources.items() if path]
+    notes = [f"{name}: {paths}" for name, paths in sources.items() if paths]
     return "\n".join(lines) + "\n\nFrom " + "; ".join(notes) + ".\n"
 
 
@@ -99,16 +104,23 @@ def plot_summary(rows: dict[str, dict], output: Path, highlight: tuple[str, ...]
     return path
 
 
-def write_summary(output: Path, homography: Path | None = None, pose: Path | None = None, sfm: Path | None = None,
-                  highlight: tuple[str, ...] = ()) -> Path:
-    """summary.md and summary.png in ``output`` from any of the three results.json; returns summary.md."""
-    rows = summary_rows(_read(homography), _read(pose), _read(sfm))
+def _paths(value: Path | list | tuple | None) -> list[Path]:
+    return [Path(v) for v in value] if isinstance(value, (list, tuple)) else [Path(value)] if value else []
+
+
+def write_summary(output: Path, homography=None, pose=None, sfm=None, highlight: tuple[str, ...] = ()) -> Path:
+    """summary.md and summary.png in ``output``; returns summary.md.
+
+    ``homography``, ``pose``, ``sfm``: a results.json path, or a list of them (later runs
+    replace earlier rows of the same method).
+    """
+    sources = {"homography": _paths(homography), "pose": _paths(pose), "SfM": _paths(sfm)}
+    rows = summary_rows(*([_read(p) for p in paths] for paths in sources.values()))
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
-    sources = {"homography": homography, "pose": pose, "SfM": sfm}
     path = output / "summary.md"
     tmp = path.with_suffix(".md.tmp")
-    tmp.write_text(summary_markdown(rows, {k: str(v) if v else "" for k, v in sources.items()}))
+    tmp.write_text(summary_markdown(rows, {k: ", ".join(f"`{p}`" for p in v) for k, v in sources.items()}))
     tmp.replace(path)
     plot_summary(rows, output, highlight)
     return path

@@ -73,9 +73,11 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
     source = run / which
     net, info = load_model(source)  # refuses anything that is not an exact SEKD checkpoint
     config = load_run_config(run / "config.yaml")
-    meta = dict(info.meta, shipped_from=str(run.name), source_sha256=info.sha256,
+    # Score the shipped checkpoint itself: step models (b) carry no validation of their own.
+    validation = checkpoint_validation(source, config)
+    meta = dict(info.meta, shipped_from=str(run.name), source=which, source_sha256=info.sha256,
                 wall_seconds=round(training_wall_seconds(run / "train.log")),
-                command=evolve_command(config, run), data=_display_path(config.images))
+                command=evolve_command(config, run), data=_display_path(config.images), validation=validation)
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(dest.name + ".tmp")
@@ -86,23 +88,24 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
         raise SekdError(f"{source}: {dest.name} would be {size} bytes, over {MAX_BYTES}; ship a smaller model")
     tmp.replace(dest)
     if card is not None:
-        baseline = reference_validation(reference, config) if reference else None
-        write_atomic(Path(card), model_card(run, dest, meta, baseline))
+        extra = [{"task": f"`{which}` (shipped)", **validation}]
+        if reference:
+            extra.append({"task": f"`{Path(reference).name}` (reference)", **checkpoint_validation(reference, config)})
+        write_atomic(Path(card), model_card(run, dest, meta, extra))
     return dest
 
 
-def reference_validation(reference: Path, config: TrainConfig) -> dict:
-    """The run's validation (same sequences, size, keypoints) of another checkpoint, labelled by its file."""
+def checkpoint_validation(checkpoint: Path, config: TrainConfig) -> dict:
+    """The run's validation (same sequences, size, keypoints) of any checkpoint."""
     from .validate import evaluate, find_sequences
 
-    metrics = evaluate(load_model(reference)[0], find_sequences(config.val_sets), config.val_long_side,
-                       config.val_max_keypoints, config.val_threshold, config.val_nms_radius, torch.device("cpu"))
-    return {"task": f"`{Path(reference).name}` (reference)", **metrics}
+    return evaluate(load_model(checkpoint)[0], find_sequences(config.val_sets), config.val_long_side,
+                    config.val_max_keypoints, config.val_threshold, config.val_nms_radius, torch.device("cpu"))
 
 
-def _validation_rows(run: Path, baseline: dict | None) -> list[str]:
+def _validation_rows(run: Path, extra: list[dict]) -> list[str]:
     rows = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else []
-    rows += [baseline] if baseline else []
+    rows += extra
     lines = ["| after | MMA@3 | MMA@3 i | MMA@3 v | HA@3 | Avg.HA@1:10 | matches |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['task']} | {r['mma3']:.3f} | {r['mma3_i']:.3f} | {r['mma3_v']:.3f} | {r['ha3']:.2f} | "
@@ -123,7 +126,7 @@ def _progress(run: Path, config: dict) -> str:
     return f"tasks done: {', '.join(done)} ({rounds} of {config['rounds']} rounds)"
 
 
-def model_card(run: Path, model: Path, meta: dict, baseline: dict | None = None) -> str:
+def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> str:
     """Markdown: what, data, schedule, command, wall time, seed, validation per round, checksum."""
     config = meta["config"]
     n_params = sum(p.numel() for p in SEKDNet().parameters())
@@ -139,7 +142,8 @@ def model_card(run: Path, model: Path, meta: dict, baseline: dict | None = None)
         f"| file | `sekd_sfm/models/{model.name}` ({model.stat().st_size:,} bytes, fp32) |",
         f"| SHA-256 | `{file_sha256(model, 64)}` |",
         f"| network | SEKD (the paper's architecture), {n_params:,} parameters |",
-        f"| chosen | `{meta['task']}` (round {meta['round']}, step {meta['step']}): best validation {meta['best_by']} |",
+        f"| chosen | `{meta['source']}` = the model after `{meta['task']}` (round {meta['round']}, step {meta['step']}); "
+        f"validation MMA@3 {meta['validation']['mma3']:.3f} |",
         f"| data | `{meta['data']}`: 256 unlabeled COCO photos, no labels of any kind |",
         f"| schedule | `{config['schedule']}`: {config['rounds']} rounds, subset 1/{config['subset_factor']} of the images "
         f"per round, long side {config['long_side']} px, crops {config['crop_height']}x{config['crop_width']}, "
@@ -153,9 +157,10 @@ def model_card(run: Path, model: Path, meta: dict, baseline: dict | None = None)
         "## Validation during training",
         "",
         f"Homography sequences of the shared data at long side {config['val_long_side']} px, "
-        f"top {config['val_max_keypoints']} keypoints, mutual NN (`train/validate.py`).",
+        f"top {config['val_max_keypoints']} keypoints, mutual NN (`train/validate.py`); the run validates after "
+        "each round's step (d); the shipped checkpoint and the reference are scored the same way by `ship.py`.",
         "",
-        *_validation_rows(run, baseline),
+        *_validation_rows(run, list(extra)),
         "",
         "## Self-labelled keypoints per image",
         "",
