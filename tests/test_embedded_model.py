@@ -62,7 +62,7 @@ def test_training_wall_time_sums_each_process_run(tmp_path):
     assert ship.training_wall_seconds(log) == 45 * 60
 
 
-def test_ship_copies_the_best_model_and_writes_its_card(tmp_path):
+def test_ship_copies_the_best_model_and_writes_its_card(tmp_path, shared):
     dest = ship.ship_model(RUN, tmp_path / "m.pth", tmp_path / "card.md")
     net, info = load_model(dest)
     best = load_model(RUN / "best.pth")[0].state_dict()

@@ -73,22 +73,23 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
     source = run / which
     net, info = load_model(source)  # refuses anything that is not an exact SEKD checkpoint
     config = load_run_config(run / "config.yaml")
-    # Score the shipped checkpoint itself: step models (b) carry no validation of their own.
-    validation = checkpoint_validation(source, config)
     meta = dict(info.meta, shipped_from=str(run.name), source=which, source_sha256=info.sha256,
                 wall_seconds=round(training_wall_seconds(run / "train.log")),
-                command=evolve_command(config, run), data=_display_path(config.images), validation=validation)
+                command=evolve_command(config, run), data=_display_path(config.images))
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(dest.name + ".tmp")
     torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)
     size = tmp.stat().st_size
+    tmp.unlink()
     if size > MAX_BYTES:
-        tmp.unlink()
         raise SekdError(f"{source}: {dest.name} would be {size} bytes, over {MAX_BYTES}; ship a smaller model")
+    # Score the shipped checkpoint itself: step models (b) carry no validation of their own.
+    meta["validation"] = checkpoint_validation(source, config)
+    torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)
     tmp.replace(dest)
     if card is not None:
-        extra = [{"task": f"`{which}` (shipped)", **validation}]
+        extra = [{"task": f"`{which}` (shipped)", **meta["validation"]}]
         if reference:
             extra.append({"task": f"`{Path(reference).name}` (reference)", **checkpoint_validation(reference, config)})
         write_atomic(Path(card), model_card(run, dest, meta, extra))
