@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from ..errors import SekdError
-from ..network import SEKDNet
+from ..network import SEKDNet, count_parameters
 from ..runtime import shared_dir
 from ..weights import EMBEDDED_MODEL, file_sha256, load_model
 from .config import TrainConfig, load_run_config, schedule_config
@@ -85,22 +85,22 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
     if size > MAX_BYTES:
         raise SekdError(f"{source}: {dest.name} would be {size} bytes, over {MAX_BYTES}; ship a smaller model")
     # Score the shipped checkpoint itself: step models (b) carry no validation of their own.
-    meta["validation"] = checkpoint_validation(source, config)
+    meta["validation"] = validate_net(net, config)
     torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)
     tmp.replace(dest)
     if card is not None:
         extra = [{"task": f"`{which}` (shipped)", **meta["validation"]}]
         if reference:
-            extra.append({"task": f"`{Path(reference).name}` (reference)", **checkpoint_validation(reference, config)})
+            extra.append({"task": f"`{Path(reference).name}` (reference)", **validate_net(load_model(reference)[0], config)})
         write_atomic(Path(card), model_card(run, dest, meta, extra))
     return dest
 
 
-def checkpoint_validation(checkpoint: Path, config: TrainConfig) -> dict:
-    """The run's validation (same sequences, size, keypoints) of any checkpoint."""
+def validate_net(net: SEKDNet, config: TrainConfig) -> dict:
+    """The run's validation (same sequences, size, keypoints) of any network."""
     from .validate import evaluate, find_sequences
 
-    return evaluate(load_model(checkpoint)[0], find_sequences(config.val_sets), config.val_long_side,
+    return evaluate(net, find_sequences(config.val_sets), config.val_long_side,
                     config.val_max_keypoints, config.val_threshold, config.val_nms_radius, torch.device("cpu"))
 
 
@@ -130,7 +130,7 @@ def _progress(run: Path, config: dict) -> str:
 def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> str:
     """Markdown: what, data, schedule, command, wall time, seed, validation per round, checksum."""
     config = meta["config"]
-    n_params = sum(p.numel() for p in SEKDNet().parameters())
+    n_params = count_parameters(SEKDNet())
     hours = meta["wall_seconds"] / 3600
     lines = [
         "# Model card: the embedded default SEKD model",
