@@ -77,3 +77,12 @@ def test_ship_refuses_a_model_over_the_size_limit(tmp_path, monkeypatch):
     with pytest.raises(SekdError, match="over 1000"):
         ship.ship_model(RUN, tmp_path / "m.pth")
     assert not (tmp_path / "m.pth").exists() and not list(Path(tmp_path).iterdir())
+
+
+@pytest.mark.parametrize("path, shown", [
+    ("/elsewhere/work/shared/data/train/coco", "../shared/data/train/coco"),
+    ("/data/my_photos", "/data/my_photos"),
+    ("relative/photos", "relative/photos"),
+])
+def test_card_shows_shared_paths_from_any_machine_as_dot_dot_shared(path, shown):
+    assert ship._display_path(path) == shown

@@ -56,11 +56,20 @@ def evolve_command(config: TrainConfig, run: Path) -> str:
 
 
 def _display_path(path: str) -> str:
-    """Paths under the shared data folder as ``../shared/...`` (machine-independent)."""
+    """Paths under the shared data folder as ``../shared/...`` (machine-independent).
+
+    The run's config may have been written on another machine, where the shared folder sat
+    elsewhere (``/work/shared`` there, ``/check/work/shared`` here): a path with a ``shared``
+    folder is shown from that folder on.
+    """
     try:
         return "../shared/" + Path(path).resolve().relative_to(shared_dir().resolve()).as_posix()
     except ValueError:
-        return str(path)
+        parts = Path(path).parts
+        if "shared" not in parts:
+            return str(path)
+        last = len(parts) - 1 - parts[::-1].index("shared")
+        return "/".join(("..",) + parts[last:])
 
 
 def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None, which: str = "best.pth",
