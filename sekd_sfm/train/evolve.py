@@ -66,12 +66,16 @@ class RunResult:
 
 
 def evolve_tasks(cfg: TrainConfig) -> list[Task]:
-    """All rounds: round 0 = (c), (d) [code] or (a0), (b), (c), (d) [paper]; later rounds (a)-(d)."""
+    """All rounds: round 0 = (c), (d) [code] or (a0), (b), (c), (d) [paper]; later rounds (a)-(d).
+
+    Both training steps validate, so the best model may be one whose last step was (b) (a
+    better descriptor on the previous round's detector).
+    """
     tasks = []
     for k in range(cfg.rounds):
         if k > 0 or cfg.round0_random:
             first = "a" if k > 0 else "a0"
-            tasks += [Task(k, first), Task(k, "b", labels=f"r{k}_{first}")]
+            tasks += [Task(k, first), Task(k, "b", labels=f"r{k}_{first}", validate=True)]
         tasks += [Task(k, "c"), Task(k, "d", labels=f"r{k}_c", validate=True)]
     return tasks
 

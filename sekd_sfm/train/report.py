@@ -57,6 +57,11 @@ class History:
             write_atomic(self.folder / "curves.png", plot_curves(self.data))
 
 
+def validation_position(record: dict) -> float:
+    """x position of a validation record: its round, half a round later after a detector step (d)."""
+    return record["round"] + (0.5 if str(record["task"]).endswith("_d") else 0.0)
+
+
 def plot_curves(data: dict) -> bytes:
     """PNG: training loss per epoch (descriptor and detector steps), validation per round, keypoints per image."""
     import matplotlib
@@ -70,11 +75,12 @@ def plot_curves(data: dict) -> bytes:
         if rows:
             axes[0].plot(*zip(*rows), "o-", label=name)
     axes[0].set(xlabel="epoch (all steps in order)", ylabel="mean loss", title="training loss", yscale="log")
-    val = sorted(data["validation"], key=lambda r: r["round"])
+    val = sorted(data["validation"], key=validation_position)
     for metric in ("mma3", "mma_avg", "ha_avg"):
         if val:
-            axes[1].plot([r["round"] for r in val], [r[metric] for r in val], "o-", label=metric)
-    axes[1].set(xlabel="round (-1 = start)", ylabel="accuracy", title="validation", ylim=(0, 1))
+            axes[1].plot([validation_position(r) for r in val], [r[metric] for r in val], "o-", label=metric)
+    axes[1].set(xlabel="round (-1 = start; (b) at k, (d) at k + 0.5)", ylabel="accuracy", title="validation",
+                ylim=(0, 1))
     for kind in ("a0", "a", "c"):
         rows = [(r["round"], r["keypoints"]) for r in data["labels"] if r["kind"] == kind]
         if rows:
