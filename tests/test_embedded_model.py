@@ -1,5 +1,4 @@
 """The model shipped inside the package, and the step that ships it."""
-import json
 import re
 from pathlib import Path
 
@@ -7,8 +6,6 @@ import h5py
 import pytest
 from click.testing import CliRunner
 
-from sekd_sfm.bench.homography import HomographyConfig, run_homography_benchmark
-from sekd_sfm.bench.methods import parse_method
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.train import ship
@@ -32,11 +29,16 @@ def test_model_card_checksum_is_the_embedded_files():
     assert re.search(r"SHA-256 \| `([0-9a-f]{64})`", card).group(1) == file_sha256(EMBEDDED_MODEL, 64)
 
 
-def test_embedded_model_estimates_graffiti_1_2(tmp_path, shared):
+def test_embedded_model_estimates_graffiti_1_2(shared):
     """Regression guard, not a benchmark: the easiest viewpoint pair within 3 px mean corner error."""
-    out = run_homography_benchmark([GRAFFITI], [parse_method("sekd")], tmp_path, HomographyConfig(precision="fp32"))
-    pairs = json.loads(out.read_text())["methods"]["sekd"]["pairs"]
-    assert pairs[0]["pair"] == "1-2" and pairs[0]["corner_error"] < 3.0
+    assert ship.graffiti_corner_error() < 3.0
+
+
+def test_ship_refuses_a_checkpoint_that_fails_the_guard(tmp_path, shared):
+    # r2_b of the first run validates better than r2_d but misses v_graffiti 1-2 (3.84 px).
+    with pytest.raises(SekdError, match="v_graffiti 1-2 mean corner error"):
+        ship.ship_model(RUN, tmp_path / "m.pth", which="models/r2_b.pth")
+    assert not (tmp_path / "m.pth").exists()
 
 
 def test_extract_without_weights_uses_the_embedded_model(tmp_path, shared):
@@ -63,7 +65,7 @@ def test_training_wall_time_sums_each_process_run(tmp_path):
 
 
 def test_ship_copies_the_best_model_and_writes_its_card(tmp_path, shared):
-    dest = ship.ship_model(RUN, tmp_path / "m.pth", tmp_path / "card.md")
+    dest = ship.ship_model(RUN, tmp_path / "m.pth", tmp_path / "card.md", guard=False)
     net, info = load_model(dest)
     best = load_model(RUN / "best.pth")[0].state_dict()
     assert all((net.state_dict()[k] == v).all() for k, v in best.items())

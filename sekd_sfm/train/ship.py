@@ -10,6 +10,7 @@ import argparse
 import dataclasses
 import json
 import re
+import tempfile
 from datetime import datetime
 from pathlib import Path
 
@@ -23,6 +24,8 @@ from .config import TrainConfig, load_run_config, schedule_config
 from .report import write_atomic
 
 MAX_BYTES = 3_000_000  # the package carries the model: keep the wheel small
+GUARD_PX = 3.0  # v_graffiti 1-2 mean corner error the embedded model must stay under (tests too)
+GUARD_SEQUENCE = "data/homography/hpatches/v_graffiti"
 _STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),\d+ ")
 _START = re.compile(r"(new|resumed) run in ")
 
@@ -73,10 +76,11 @@ def _display_path(path: str) -> str:
 
 
 def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None, which: str = "best.pth",
-               reference: Path | None = None) -> Path:
+               reference: Path | None = None, guard: bool = True) -> Path:
     """Copy ``run/which`` to ``dest`` with its training facts; write the model card; return ``dest``.
 
     ``reference``: another checkpoint (the authors') scored by the run's own validation for the card.
+    ``guard``: refuse a checkpoint that fails the package's regression guard (``graffiti_corner_error``).
     """
     run = Path(run)
     source = run / which
@@ -93,6 +97,8 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
     tmp.unlink()
     if size > MAX_BYTES:
         raise SekdError(f"{source}: {dest.name} would be {size} bytes, over {MAX_BYTES}; ship a smaller model")
+    if guard:
+        meta["graffiti_1_2_corner_error"] = _check_guard(source)
     # Score the shipped checkpoint itself: step models (b) carry no validation of their own.
     meta["validation"] = validate_net(net, config)
     torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)
@@ -103,6 +109,32 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
             extra.append({"task": f"`{Path(reference).name}` (reference)", **validate_net(load_model(reference)[0], config)})
         write_atomic(Path(card), model_card(run, dest, meta, extra))
     return dest
+
+
+def graffiti_corner_error(weights: Path | None = None) -> float:
+    """Mean corner error (px, full resolution) of the homography of v_graffiti pair 1-2.
+
+    The embedded model's regression guard (the easiest viewpoint pair, default benchmark
+    settings, fp32); ``weights`` None = the embedded model.
+    """
+    from ..bench.homography import HomographyConfig, run_homography_benchmark
+    from ..bench.methods import Method
+
+    method = Method("candidate", "sekd", str(weights) if weights else None)
+    with tempfile.TemporaryDirectory(prefix="sekd_guard_") as work:
+        out = run_homography_benchmark([shared_dir() / GUARD_SEQUENCE], [method], Path(work),
+                                       HomographyConfig(precision="fp32"))
+        pairs = json.loads(out.read_text())["methods"]["candidate"]["pairs"]
+    first = next(p for p in pairs if p["pair"] == "1-2")
+    return float(first["corner_error"])
+
+
+def _check_guard(source: Path) -> float:
+    error = graffiti_corner_error(source)
+    if not error < GUARD_PX:  # also refuses NaN (no homography found)
+        raise SekdError(f"{source}: v_graffiti 1-2 mean corner error {error:.2f} px, not under {GUARD_PX:g} px "
+                        "(the embedded model's regression guard); ship another checkpoint with --which")
+    return error
 
 
 def validate_net(net: SEKDNet, config: TrainConfig) -> dict:
@@ -154,6 +186,8 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
         f"| network | SEKD (the paper's architecture), {n_params:,} parameters |",
         f"| chosen | `{meta['source']}` = the model after `{meta['task']}` (round {meta['round']}, step {meta['step']}); "
         f"validation MMA@3 {meta['validation']['mma3']:.3f} |",
+        *([f"| regression guard | v_graffiti 1-2 mean corner error {meta['graffiti_1_2_corner_error']:.2f} px "
+           f"(must stay under {GUARD_PX:g} px) |"] if "graffiti_1_2_corner_error" in meta else []),
         f"| data | `{meta['data']}`: 256 unlabeled COCO photos, no labels of any kind |",
         f"| schedule | `{config['schedule']}`: {config['rounds']} rounds, subset 1/{config['subset_factor']} of the images "
         f"per round, long side {config['long_side']} px, crops {config['crop_height']}x{config['crop_width']}, "
@@ -191,8 +225,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--card", type=Path, default=None, help="write the model card here (Markdown)")
     parser.add_argument("--reference", type=Path, default=None,
                         help="checkpoint scored by the same validation for the card (e.g. the authors' sekd.pth)")
+    parser.add_argument("--no-guard", action="store_true",
+                        help=f"ship even if v_graffiti 1-2 is not within {GUARD_PX:g} px (the tests will fail)")
     args = parser.parse_args(argv)
-    dest = ship_model(args.run, args.dest, args.card, args.which, args.reference)
+    try:
+        dest = ship_model(args.run, args.dest, args.card, args.which, args.reference, guard=not args.no_guard)
+    except SekdError as exc:
+        raise SystemExit(f"error: {exc}") from None
     print(f"{dest}: {dest.stat().st_size:,} bytes, sha256 {file_sha256(dest, 64)}")
 
 
