@@ -19,13 +19,12 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import featurefile as ff
-from ..errors import Interrupted
 from ..match import match_descriptors
 from ..images import read_image, resized_to_original_matrix
 from ..runtime import package_versions
 from . import metrics
 from .datasets import Sequence, find_sequences
-from .methods import Method, available, cached_features
+from .methods import Method, cached_features, evaluate_each
 
 logger = logging.getLogger("sekd")
 
@@ -127,21 +126,16 @@ def run_homography_benchmark(roots: list[Path], methods: list[Method], output: P
     scales = prepare_images(sequences, cache / "images", config)
     results = {"config": asdict(config), "sequences": [s.name for s in sequences],
                "versions": package_versions(), "methods": {}}
-    for method in available(methods):
-        try:
-            feature_config = method.feature_config(config.max_keypoints, config.precision, config.threshold,
-                                                   config.nms_radius)
-            features, seconds = cached_features(method, feature_config, cache / "images", cache, config.image_tag())
-            binary = ff.read_attrs(features)["descriptor_dtype"] == "uint8"
-            pairs = evaluate_method(features, sequences, scales, binary)
-        except (Interrupted, KeyboardInterrupt):
-            raise  # the user stopped the whole benchmark, not this method
-        except Exception as exc:  # noqa: BLE001 - one failing method is reported, not fatal
-            logger.warning("%s failed: %s", method.label, exc)
-            results["methods"][method.label] = {"error": str(exc)}
-            continue
-        results["methods"][method.label] = {"method": asdict(method), "seconds_per_image": seconds,
-                                            "summary": summarise(pairs), "pairs": pairs}
+
+    def evaluate(method: Method) -> dict:
+        feature_config = method.feature_config(config.max_keypoints, config.precision, config.threshold,
+                                               config.nms_radius)
+        features, seconds = cached_features(method, feature_config, cache / "images", cache, config.image_tag())
+        binary = ff.read_attrs(features)["descriptor_dtype"] == "uint8"
+        pairs = evaluate_method(features, sequences, scales, binary)
+        return {"method": asdict(method), "seconds_per_image": seconds, "summary": summarise(pairs), "pairs": pairs}
+
+    results["methods"] = evaluate_each(methods, evaluate)
     return write_reports(results, Path(output))
 
 

@@ -11,11 +11,12 @@ import hashlib
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from .. import featurefile as ff
-from ..errors import SekdError
+from ..errors import Interrupted, SekdError
 from ..extract import extract_features
 from ..features import FEATURE_TYPES, FeatureConfig
 from ..features.peers import PEER_FEATURES, peer_weights_path
@@ -65,6 +66,24 @@ def available(methods: list[Method]) -> list[Method]:
                 continue
         kept.append(method)
     return kept
+
+
+def evaluate_each(methods: list[Method], evaluate: Callable[[Method], dict]) -> dict[str, dict]:
+    """``label -> evaluate(method)`` for every available method.
+
+    A method that fails is recorded as ``{"error": message}`` and the others go on; Ctrl-C
+    (``Interrupted``) stops the whole benchmark instead of being recorded as a failure.
+    """
+    entries = {}
+    for method in available(methods):
+        try:
+            entries[method.label] = evaluate(method)
+        except (Interrupted, KeyboardInterrupt):
+            raise
+        except Exception as exc:  # noqa: BLE001 - one failing method is reported, not fatal
+            logger.warning("%s failed: %s", method.label, exc)
+            entries[method.label] = {"error": str(exc)}
+    return entries
 
 
 def cache_file(method: Method, config: FeatureConfig, image_root: Path, cache: Path, tag: str = "") -> Path:

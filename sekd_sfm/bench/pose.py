@@ -19,12 +19,12 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import featurefile as ff
-from ..errors import Interrupted, SekdError
+from ..errors import SekdError
 from ..match import DEFAULT_RATIO, FALLBACK_RATIO, ROOTSIFT_FEATURES, match_descriptors
 from ..runtime import package_versions
 from . import metrics
 from .datasets import PoseScene, read_pose_scene
-from .methods import Method, available, cached_features
+from .methods import Method, cached_features, evaluate_each
 
 logger = logging.getLogger("sekd")
 
@@ -112,16 +112,12 @@ def run_pose_benchmark(scene_dirs: list[Path], methods: list[Method], output: Pa
     scenes = [read_pose_scene(d) for d in scene_dirs]
     results = {"config": asdict(config), "scenes": [s.name for s in scenes], "versions": package_versions(),
                "methods": {}}
-    for method in available(methods):
-        try:
-            pairs = _evaluate_method(method, scenes, Path(output) / "cache", config)
-        except (Interrupted, KeyboardInterrupt):
-            raise  # the user stopped the whole benchmark, not this method
-        except Exception as exc:  # noqa: BLE001 - one failing method is reported, not fatal
-            logger.warning("%s failed: %s", method.label, exc)
-            results["methods"][method.label] = {"error": str(exc)}
-            continue
-        results["methods"][method.label] = {"method": asdict(method), "summary": summarise(pairs), "pairs": pairs}
+
+    def evaluate(method: Method) -> dict:
+        pairs = _evaluate_method(method, scenes, Path(output) / "cache", config)
+        return {"method": asdict(method), "summary": summarise(pairs), "pairs": pairs}
+
+    results["methods"] = evaluate_each(methods, evaluate)
     return _write(results, Path(output))
 
 
