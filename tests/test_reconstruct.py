@@ -10,11 +10,12 @@ from click.testing import CliRunner
 from sekd_sfm import featurefile as ff
 from sekd_sfm.bench.strecha import rotation_angle_deg
 from sekd_sfm.cli.main import sekd
-from sekd_sfm.errors import SekdError
+from sekd_sfm.errors import Interrupted, SekdError
 from sekd_sfm.extract import describe_config
 from sekd_sfm.features import FeatureConfig, build_extractor
 from sekd_sfm.sfm.colmap import open_database, require_pycolmap, set_options
 from sekd_sfm.sfm.database import CameraConfig, parse_camera_params
+from sekd_sfm.sfm.mapping import run_mapper
 from sekd_sfm.sfm.reconstruct import ReconstructConfig, reconstruct
 
 pycolmap = require_pycolmap()
@@ -338,3 +339,18 @@ def test_sacre_coeur_rerun_reuses_features_and_matches(sacre_coeur):
     # A different feature setting is refused rather than mixed into the existing files.
     result = CliRunner().invoke(sekd, args + ["--max-keypoints", "3000"])
     assert result.exit_code == 1 and "was made with a different configuration" in result.output
+
+
+def test_ctrl_c_while_mapping_keeps_the_database_and_says_how_to_resume(synthetic, tmp_path, monkeypatch):
+    database = tmp_path / "database.db"
+    database.write_bytes((synthetic[2] / "database.db").read_bytes())
+
+    def interrupted(*args, **kwargs):  # what pycolmap raises when Ctrl-C stops its mapper
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", interrupted)
+    with pytest.raises(Interrupted, match="database.db .* is kept; run the same command again"):
+        run_mapper(database, synthetic[1], progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["database.db"]  # scratch folder removed
+    with open_database(database) as db:
+        assert db.num_images() == 8

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from ..errors import Interrupted
 from .colmap import open_database, require_pycolmap, set_options
 
 MAIN_MODEL = "model"
@@ -65,6 +66,9 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
         found = pycolmap.incremental_mapping(str(database), str(image_dir), str(scratch), options,
                                              initial_image_pair_callback=bar.initial_pair,
                                              next_image_callback=bar.next_image)
+    except KeyboardInterrupt:  # pycolmap stops the mapper at Ctrl-C and raises it here
+        raise Interrupted(f"interrupted while mapping: {database} (features and matches) is kept; run the same "
+                          "command again to map again") from None
     finally:
         bar.bar.close()
         shutil.rmtree(scratch, ignore_errors=True)  # models are written by write_models, in our layout
