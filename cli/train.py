@@ -70,8 +70,9 @@ def evolve(images, out, schedule, config_file, settings, seed, device, num_threa
     \b
     Each round: (a) keypoints from the detector with affine adaptation, (b) descriptor
     update, (c) keypoints from descriptor reliability, (d) detector update; round 0
-    runs (c), (d) only unless round0_random is set. After each round the model is
-    validated on homography sequences; best.pth and last.pth load in `sekd extract --weights`.
+    runs (c), (d) only unless round0_random is set. After each update, (b) or (d), the
+    model is validated on homography sequences; best.pth (the best of these) and last.pth
+    load in `sekd extract --weights`.
     Multi-process: torchrun --nproc_per_node N -m sekd_sfm.cli.main evolve ...
 
     \b
