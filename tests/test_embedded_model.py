@@ -88,3 +88,19 @@ def test_ship_refuses_a_model_over_the_size_limit(tmp_path, monkeypatch):
 ])
 def test_card_shows_shared_paths_from_any_machine_as_dot_dot_shared(path, shown):
     assert ship._display_path(path) == shown
+
+
+def test_ship_auto_takes_the_best_validated_step_that_passes_the_guard(monkeypatch):
+    errors = {"r2_d": 3.5, "r1_d": float("nan"), "r0_d": 2.0}  # validation ranks r2_d > r1_d > r0_d
+    tried = []
+
+    def fake_guard(weights):
+        tried.append(Path(weights).stem)
+        return errors[Path(weights).stem]
+
+    monkeypatch.setattr(ship, "graffiti_corner_error", fake_guard)
+    assert ship.best_guarded_step(RUN) == ("models/r0_d.pth", 2.0)
+    assert tried == ["r2_d", "r1_d", "r0_d"]
+    errors["r0_d"] = 3.0
+    with pytest.raises(SekdError, match="no step model passes the regression guard .*r0_d 3.00 px"):
+        ship.best_guarded_step(RUN)

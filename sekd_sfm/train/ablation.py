@@ -17,6 +17,7 @@ from pathlib import Path
 
 from ..errors import SekdError
 from .config import RUNTIME_FIELDS, TrainConfig, load_run_config
+from .report import ranked_steps
 
 SWITCHES = ("no_affine", "no_desc_dis", "no_desc_rep", "no_det_rep")
 # Fields that may differ between an ablation and its baseline: the switches themselves, the
@@ -37,14 +38,10 @@ def best_step(run: Path, max_round: int | None = None, metric: str | None = None
 
     The metric is the run's ``best_metric`` unless given; the untrained start never counts.
     """
-    config = load_run_config(Path(run) / "config.yaml")
-    metric = metric or config.best_metric
-    rows = json.loads((Path(run) / "metrics.json").read_text()) if (Path(run) / "metrics.json").is_file() else []
-    rows = [r for r in rows if r["task"] != "start" and (max_round is None or r["round"] <= max_round)]
-    if not rows:
+    ranked = ranked_steps(run, max_round, metric)
+    if not ranked:
         raise SekdError(f"{run}: no validated step{'' if max_round is None else f' in rounds 0-{max_round}'} yet")
-    best = max(rows, key=lambda r: r[metric])
-    return best["task"], float(best[metric])
+    return ranked[0]
 
 
 def rounds_done(run: Path) -> int:

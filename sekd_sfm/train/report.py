@@ -11,6 +11,8 @@ import json
 import os
 from pathlib import Path
 
+from .config import load_run_config
+
 SECTIONS = {"epochs": ("round", "kind", "epoch"), "labels": ("task",), "validation": ("task",)}
 
 
@@ -96,3 +98,16 @@ def plot_curves(data: dict) -> bytes:
     fig.savefig(buffer, format="png", dpi=90)
     plt.close(fig)
     return buffer.getvalue()
+
+
+def ranked_steps(run: Path, max_round: int | None = None, metric: str | None = None) -> list[tuple[str, float]]:
+    """Validated training steps of the run folder ``run`` as (task, value), best first.
+
+    ``metric``: the run's ``best_metric`` unless given; ``max_round``: only rounds up to it.
+    The untrained start never counts.
+    """
+    metric = metric or load_run_config(Path(run) / "config.yaml").best_metric
+    path = Path(run) / "metrics.json"
+    rows = json.loads(path.read_text()) if path.is_file() else []
+    rows = [r for r in rows if r["task"] != "start" and (max_round is None or r["round"] <= max_round)]
+    return [(r["task"], float(r[metric])) for r in sorted(rows, key=lambda r: -r[metric])]

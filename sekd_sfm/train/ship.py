@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import re
 import tempfile
 from datetime import datetime
@@ -21,8 +22,9 @@ from ..network import SEKDNet, count_parameters
 from ..runtime import shared_dir
 from ..weights import EMBEDDED_MODEL, file_sha256, load_model
 from .config import TrainConfig, load_run_config, schedule_config
-from .report import write_atomic
+from .report import ranked_steps, write_atomic
 
+logger = logging.getLogger("sekd")
 MAX_BYTES = 3_000_000  # the package carries the model: keep the wheel small
 GUARD_PX = 3.0  # v_graffiti 1-2 mean corner error the embedded model must stay under (tests too)
 GUARD_SEQUENCE = "data/homography/hpatches/v_graffiti"
@@ -81,8 +83,12 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
 
     ``reference``: another checkpoint (the authors') scored by the run's own validation for the card.
     ``guard``: refuse a checkpoint that fails the package's regression guard (``graffiti_corner_error``).
+    ``which="auto"``: the best-validated step model that passes the guard (``best_guarded_step``).
     """
     run = Path(run)
+    guard_error = None
+    if which == "auto":
+        which, guard_error = best_guarded_step(run)
     source = run / which
     net, info = load_model(source)  # refuses anything that is not an exact SEKD checkpoint
     config = load_run_config(run / "config.yaml")
@@ -98,7 +104,7 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
     if size > MAX_BYTES:
         raise SekdError(f"{source}: {dest.name} would be {size} bytes, over {MAX_BYTES}; ship a smaller model")
     if guard:
-        meta["graffiti_1_2_corner_error"] = _check_guard(source)
+        meta["graffiti_1_2_corner_error"] = guard_error if guard_error is not None else _check_guard(source)
     # Score the shipped checkpoint itself: step models (b) carry no validation of their own.
     meta["validation"] = validate_net(net, config)
     torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)
@@ -127,6 +133,22 @@ def graffiti_corner_error(weights: Path | None = None) -> float:
         pairs = json.loads(out.read_text())["methods"]["candidate"]["pairs"]
     first = next(p for p in pairs if p["pair"] == "1-2")
     return float(first["corner_error"])
+
+
+def best_guarded_step(run: Path) -> tuple[str, float]:
+    """(``models/<task>.pth``, its guard error) of the best-validated step that passes the guard.
+
+    Steps are tried best first by the run's ``best_metric``; SekdError when none passes.
+    """
+    tried = []
+    for task, value in ranked_steps(run):
+        error = graffiti_corner_error(run / "models" / f"{task}.pth")
+        logger.info("%s: validation %.4f, v_graffiti 1-2 corner error %.2f px", task, value, error)
+        if error < GUARD_PX:
+            return f"models/{task}.pth", error
+        tried.append(f"{task} {error:.2f} px")
+    raise SekdError(f"{run}: no step model passes the regression guard ({', '.join(tried) or 'none validated'}; "
+                    f"limit {GUARD_PX:g} px)")
 
 
 def _check_guard(source: Path) -> float:
@@ -220,7 +242,9 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="run folder of sekd evolve")
-    parser.add_argument("--which", default="best.pth", help="checkpoint in the run folder (default best.pth)")
+    parser.add_argument("--which", default="best.pth",
+                        help="checkpoint in the run folder (default best.pth), or auto: the best-validated step "
+                             "model that passes the regression guard")
     parser.add_argument("--dest", type=Path, default=EMBEDDED_MODEL)
     parser.add_argument("--card", type=Path, default=None, help="write the model card here (Markdown)")
     parser.add_argument("--reference", type=Path, default=None,
@@ -228,6 +252,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--no-guard", action="store_true",
                         help=f"ship even if v_graffiti 1-2 is not within {GUARD_PX:g} px (the tests will fail)")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         dest = ship_model(args.run, args.dest, args.card, args.which, args.reference, guard=not args.no_guard)
     except SekdError as exc:
