@@ -62,6 +62,7 @@ def test_tiny_run_improves_held_out_matching(tiny_run):
     start, *rounds = sorted(tiny_run.validation, key=validation_position)
     assert start["task"] == "start" and [r["task"] for r in rounds] == ["r0_b", "r0_d", "r1_b", "r1_d"]
     final = rounds[-1]
+    assert all(-1 <= r["desc_cos"] <= 1 for r in [start, *rounds])  # the collapse diagnostic is recorded
     # Held-out homography sequences (never trained on): the random start matches worse.
     assert final["mma3"] > start["mma3"] + 0.02
     assert final["ha_avg"] > start["ha_avg"]

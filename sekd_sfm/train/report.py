@@ -78,9 +78,10 @@ def plot_curves(data: dict) -> bytes:
             axes[0].plot(*zip(*rows), "o-", label=name)
     axes[0].set(xlabel="epoch (all steps in order)", ylabel="mean loss", title="training loss", yscale="log")
     val = sorted(data["validation"], key=validation_position)
-    for metric in ("mma3", "mma_avg", "ha_avg"):
-        if val:
-            axes[1].plot([validation_position(r) for r in val], [r[metric] for r in val], "o-", label=metric)
+    for metric, style in (("mma3", "o-"), ("mma_avg", "o-"), ("ha_avg", "o-"), ("desc_cos", "x--")):
+        rows = [r for r in val if metric in r]  # desc_cos: runs validated before it existed lack it
+        if rows:
+            axes[1].plot([validation_position(r) for r in rows], [r[metric] for r in rows], style, label=metric)
     axes[1].set(xlabel="round (-1 = start; (b) at k, (d) at k + 0.5)", ylabel="accuracy", title="validation",
                 ylim=(0, 1))
     for kind in ("a0", "a", "c"):
