@@ -13,29 +13,33 @@ def _pct(value) -> str:
     return "-" if value is None else f"{100 * value:.2f}"
 
 
+def _method_table(results: dict, title: str, columns: list[str], cells) -> str:
+    """Markdown: ``title``, then one row per method of ``results`` (``cells(entry)``; failed methods say why)."""
+    lines = [title, "", "| method | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    for label, entry in results["methods"].items():
+        if "error" in entry:
+            lines.append(f"| {label} | failed: {entry['error']} |" + " |" * (len(columns) - 1))
+        else:
+            lines.append(f"| {label} | " + " | ".join(cells(entry)) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def homography_markdown(results: dict) -> str:
     """One row per method: Avg.HA@1:10 overall / i / v, HA@1/3/5, MMA@3, repeatability, matches, time."""
     config = results["config"]
-    lines = [
-        f"Homography estimation on {len(results['sequences'])} sequences "
-        f"(long side <= {config['resize_max'] or 'full'} px, top {config['max_keypoints']} keypoints, mutual NN, "
-        "OpenCV RANSAC). Percentages.",
-        "",
-        "| method | Avg.HA@1:10 | i | v | HA@1 | HA@3 | HA@5 | MMA@3 | rep@3 | matches | ms/image |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for label, entry in results["methods"].items():
-        if "error" in entry:
-            lines.append(f"| {label} | failed: {entry['error']} |" + " |" * 9)
-            continue
+    title = (f"Homography estimation on {len(results['sequences'])} sequences "
+             f"(long side <= {config['resize_max'] or 'full'} px, top {config['max_keypoints']} keypoints, mutual NN, "
+             "OpenCV RANSAC). Percentages.")
+    columns = ["Avg.HA@1:10", "i", "v", "HA@1", "HA@3", "HA@5", "MMA@3", "rep@3", "matches", "ms/image"]
+
+    def cells(entry: dict) -> list[str]:
         s = entry["summary"]
         ha = s["ha_all"]
-        lines.append(
-            f"| {label} | {_pct(s['avg_ha_all'])} | {_pct(s['avg_ha_i'])} | {_pct(s['avg_ha_v'])} | "
-            f"{_pct(ha[0])} | {_pct(ha[2])} | {_pct(ha[4])} | {_pct(s['mma'][2])} | {_pct(s['repeatability'])} | "
-            f"{s['matches']:.0f} | {1000 * entry['seconds_per_image']:.0f} |"
-        )
-    return "\n".join(lines) + "\n"
+        return [_pct(s["avg_ha_all"]), _pct(s["avg_ha_i"]), _pct(s["avg_ha_v"]), _pct(ha[0]), _pct(ha[2]),
+                _pct(ha[4]), _pct(s["mma"][2]), _pct(s["repeatability"]), f"{s['matches']:.0f}",
+                f"{1000 * entry['seconds_per_image']:.0f}"]
+
+    return _method_table(results, title, columns, cells)
 
 
 def _distinct_colours(ax) -> None:
@@ -84,22 +88,19 @@ def plot_curves(results: dict, output: Path) -> list[Path]:
 def pose_markdown(results: dict) -> str:
     """One row per method: mAA@1:10, AUC@5/10/20, median errors, matches, inliers."""
     config = results["config"]
-    lines = [
-        f"Relative pose on all image pairs of {', '.join(results['scenes'])} (up to {config['max_keypoints']} "
-        f"keypoints, long side <= {config['resize_max'] or 'full'} px for extraction, ratio test for float / "
-        "mutual NN for binary descriptors, essential matrix RANSAC).",
-        "",
-        "| method | pairs | mAA@1:10 | AUC@5 | AUC@10 | AUC@20 | median rot (deg) | median trans (deg) | matches | inliers |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for label, entry in results["methods"].items():
-        if "error" in entry:
-            lines.append(f"| {label} | failed: {entry['error']} |" + " |" * 8)
-            continue
+    title = (f"Relative pose on all image pairs of {', '.join(results['scenes'])} (up to {config['max_keypoints']} "
+             f"keypoints, long side <= {config['resize_max'] or 'full'} px for extraction, ratio test for float / "
+             "mutual NN for binary descriptors, essential matrix RANSAC).")
+    columns = ["pairs", "mAA@1:10", "AUC@5", "AUC@10", "AUC@20", "median rot (deg)", "median trans (deg)",
+               "matches", "inliers"]
+
+    def cells(entry: dict) -> list[str]:
         s = entry["summary"]
-        lines.append(f"| {label} | {s['pairs']} | {s['maa']:.3f} | {s['auc5']:.3f} | {s['auc10']:.3f} | {s['auc20']:.3f} | "
-                     f"{s['median_rotation_deg']:.2f} | {s['median_translation_deg']:.2f} | {s['matches']:.0f} | {s['inliers']:.0f} |")
-    return "\n".join(lines) + "\n"
+        return [str(s["pairs"]), f"{s['maa']:.3f}", f"{s['auc5']:.3f}", f"{s['auc10']:.3f}", f"{s['auc20']:.3f}",
+                f"{s['median_rotation_deg']:.2f}", f"{s['median_translation_deg']:.2f}", f"{s['matches']:.0f}",
+                f"{s['inliers']:.0f}"]
+
+    return _method_table(results, title, columns, cells)
 
 
 def plot_pose(results: dict, output: Path) -> Path:
