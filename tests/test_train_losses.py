@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from sekd_sfm.train.losses import (focal_loss, hardest_negatives, pairwise_distances, preservation_mse,
-                                   repeatability_paper, repeatability_weighted, triplet_loss)
+                                   repeatability_paper, repeatability_weighted, spatial_neighbours,
+                                   triplet_loss)
 from sekd_sfm.train.steps import matched_keypoints, sample_upsampled
 
 # Anchors a_i and their matches p_i (unit vectors in 2-D):
@@ -34,6 +35,22 @@ def test_hardest_negative_skips_diagonal_and_near_duplicates():
     d = torch.tensor([[0.5, 0.005, 0.9], [0.7, 0.2, 0.3], [0.4, 0.6, 0.1]])
     # 0.005 < 0.008 counts as the same point; rows give (0.9, 0.3, 0.4), columns (0.4, 0.6, 0.3).
     assert torch.allclose(hardest_negatives(d), torch.tensor([0.4, 0.3, 0.3]))
+
+
+def test_hardest_negative_skips_excluded_pairs():
+    d = torch.tensor([[0.5, 0.05, 0.9], [0.7, 0.2, 0.3], [0.4, 0.6, 0.1]])
+    exclude = torch.tensor([[False, True, False], [True, False, False], [False, False, False]])
+    # Without 0-1 and 1-0: rows (0.9, 0.3, 0.4), columns (0.4, 0.6, 0.3).
+    assert torch.allclose(hardest_negatives(d, exclude=exclude), torch.tensor([0.4, 0.3, 0.3]))
+    assert torch.allclose(hardest_negatives(d), torch.tensor([0.05, 0.05, 0.3]))
+
+
+def test_spatial_neighbours_by_hand():
+    points = torch.tensor([[0, 0], [3, 4], [10, 0]])  # distances 5, 10, sqrt(85)
+    assert spatial_neighbours(points, 5.5).tolist() == [[False, True, False], [True, False, False],
+                                                        [False, False, False]]
+    assert not spatial_neighbours(points, 5.0).any()  # strictly closer than the radius
+    assert not spatial_neighbours(points, 0.0).any() and spatial_neighbours(points[:0], 3.0).shape == (0, 0)
 
 
 def test_ratio_form_averages_only_ambiguous_pairs():

@@ -20,28 +20,31 @@ def pairwise_distances(a: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     return squared.clamp_min(MIN_SQUARED_DISTANCE).sqrt()
 
 
-def hardest_negatives(d: torch.Tensor, min_distance: float = 0.008, penalty: float = 10.0) -> torch.Tensor:
+def hardest_negatives(d: torch.Tensor, min_distance: float = 0.008, penalty: float = 10.0,
+                      exclude: torch.Tensor | None = None) -> torch.Tensor:
     """Per i: the smallest non-matching distance in row i *or* column i of ``d`` (anchor swap).
 
-    The diagonal, and entries closer than ``min_distance`` (practically the same point),
-    get ``penalty`` added so they are never picked. ``N x N`` -> ``N``.
+    The diagonal, entries closer than ``min_distance`` (practically the same point) and the
+    ``exclude`` entries (``N x N`` bool, symmetric) get ``penalty`` added so they are never
+    picked. ``N x N`` -> ``N``.
     """
     eye = torch.eye(d.shape[0], dtype=torch.bool, device=d.device)
-    masked = d + penalty * (eye | (d < min_distance)).to(d.dtype)
+    never = eye | (d < min_distance) if exclude is None else eye | (d < min_distance) | exclude
+    masked = d + penalty * never.to(d.dtype)
     return torch.minimum(masked.min(dim=1).values, masked.min(dim=0).values)
 
 
 def triplet_loss(a: torch.Tensor, p: torch.Tensor, form: str = "ratio", ratio_threshold: float = 0.85,
                  margin: float = 0.8, normalise: str = "count", min_distance: float = 0.008,
-                 penalty: float = 10.0) -> torch.Tensor:
+                 penalty: float = 10.0, exclude: torch.Tensor | None = None) -> torch.Tensor:
     """Descriptor loss of one sample: matched unit descriptors ``a_i <-> p_i`` (``N x C`` each), scalar.
 
     ``ratio`` ([code]): mean of ``pos - neg`` over the pairs with ``pos / neg > ratio_threshold``.
     ``margin`` ([paper]): ``sum max(0, pos - neg + margin)`` over n (``count``) or over the
-    non-zero terms (``nonzero``, the code's variant).
+    non-zero terms (``nonzero``, the code's variant). ``exclude``: pairs never used as negatives.
     """
     d = pairwise_distances(a, p)
-    pos, neg = d.diagonal(), hardest_negatives(d, min_distance, penalty)
+    pos, neg = d.diagonal(), hardest_negatives(d, min_distance, penalty, exclude)
     if form == "ratio":
         active = ((pos / neg) > ratio_threshold).detach().to(d.dtype)
         return ((pos - neg) * active).sum() / (active.sum() + 1e-8)
@@ -85,3 +88,15 @@ def repeatability_weighted(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 def repeatability_paper(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """[paper] ``0.5 sum_i (KL(u_i || v_i) + KL(v_i || u_i))`` over corresponding keypoints (``N x 2``)."""
     return 0.5 * (_kl_terms(u, v) + _kl_terms(v, u)).sum()
+
+
+def spatial_neighbours(points: torch.Tensor, radius: float) -> torch.Tensor:
+    """``N x N`` bool: keypoints (``N x 2`` pixels) closer than ``radius`` px to each other (not self).
+
+    All False for ``radius`` <= 0.
+    """
+    if radius <= 0:
+        return torch.zeros(len(points), len(points), dtype=torch.bool, device=points.device)
+    xy = points.to(torch.float32)
+    close = torch.cdist(xy, xy) < radius
+    return close & ~torch.eye(len(points), dtype=torch.bool, device=points.device)

@@ -23,7 +23,7 @@ from .data import PairDataset, TrainImages, rng_for
 from .distributed import Context, check_in_sync, shard, sum_across, sync_buffers, wrap
 from .labels import Labels
 from .losses import (focal_loss, preservation_mse, repeatability_paper, repeatability_weighted,
-                     triplet_loss)
+                     spatial_neighbours, triplet_loss)
 from .model import frozen_copy
 
 logger = logging.getLogger("sekd.train")
@@ -80,7 +80,7 @@ def descriptor_loss(outputs, reference, batch: dict, cfg: TrainConfig, alpha: fl
         a = sample_upsampled(d0[b], p[:, 0], p[:, 1], h, w)
         pos = sample_upsampled(d1[b], q[:, 0], q[:, 1], h, w)
         desc = desc + triplet_loss(a, pos, cfg.desc_loss, cfg.ratio_threshold, cfg.margin, cfg.margin_normalise,
-                                   cfg.neg_min_distance, cfg.neg_self_penalty)
+                                   cfg.neg_min_distance, cfg.neg_self_penalty, spatial_neighbours(p, cfg.neg_min_pixels))
         used += 1
     desc = desc / l0.shape[0]
     total = desc + alpha * pres
