@@ -62,6 +62,8 @@ def test_training_wall_time_sums_each_process_run(tmp_path):
         "2026-01-03 09:00:00,000 INFO resumed run in /x: 1 process(es)\n"
         "2026-01-03 09:15:00,000 INFO validation\n")
     assert ship.training_wall_seconds(log) == 45 * 60
+    assert ship.training_wall_seconds(log, until="round 0") == 30 * 60  # up to a model: stops at its line
+    assert ship.training_wall_seconds(log, until="never logged") == 45 * 60
 
 
 def test_ship_copies_the_best_model_and_writes_its_card(tmp_path, shared):

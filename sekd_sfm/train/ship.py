@@ -32,10 +32,11 @@ _STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),\d+ ")
 _START = re.compile(r"(new|resumed) run in ")
 
 
-def training_wall_seconds(log: Path) -> float:
+def training_wall_seconds(log: Path, until: str | None = None) -> float:
     """Seconds spent training: per process run of ``train.log``, last line minus first, summed.
 
-    A run resumed days later contributes only its own span, not the pause.
+    A run resumed days later contributes only its own span, not the pause. ``until``: stop at
+    the first line containing it (e.g. ``validation after r1_d``: the time to that model).
     """
     total, first, last = 0.0, None, None
     for line in Path(log).read_text().splitlines():
@@ -47,6 +48,8 @@ def training_wall_seconds(log: Path) -> float:
             total += (last - first).total_seconds()
             first = None
         first, last = first or stamp, stamp
+        if until and until in line:
+            break
     return total + ((last - first).total_seconds() if first else 0.0)
 
 
@@ -58,6 +61,11 @@ def evolve_command(config: TrainConfig, run: Path) -> str:
                and getattr(config, f.name) != getattr(base, f.name)]
     return " ".join([f"sekd evolve --images {_display_path(config.images)} --schedule {config.schedule}",
                      f"--seed {config.seed} --out {run}", *changed])
+
+
+def _validated_line(meta: dict) -> str | None:
+    """The log line that ends the training of this model (its validation), if it names a step."""
+    return f"validation after {meta['task']}" if meta.get("task") else None
 
 
 def _display_path(path: str) -> str:
@@ -93,7 +101,7 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
     net, info = load_model(source)  # refuses anything that is not an exact SEKD checkpoint
     config = load_run_config(run / "config.yaml")
     meta = dict(info.meta, shipped_from=str(run.name), source=which, source_sha256=info.sha256,
-                wall_seconds=round(training_wall_seconds(run / "train.log")),
+                wall_seconds=round(training_wall_seconds(run / "train.log", _validated_line(info.meta))),
                 command=evolve_command(config, run), data=_display_path(config.images))
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
@@ -217,7 +225,8 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
         f"lr {config['lr']} |",
         f"| seed | {config['seed']} |",
         f"| progress | {_progress(run, config)} |",
-        f"| wall time | {hours:.2f} h of training on a 2-core CPU (no GPU), summed over the resumed sessions |",
+        f"| wall time | {hours:.2f} h of training on a 2-core CPU (no GPU) up to this model, summed over the "
+        "resumed sessions |",
         f"| command | `{meta['command']}` (resumed with `sekd evolve --resume --out ...`) |",
         "",
         "## Validation during training",
