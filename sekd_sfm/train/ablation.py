@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 
 from ..errors import SekdError
 from .config import RUNTIME_FIELDS, TrainConfig, load_run_config
-from .report import ranked_steps
+from .report import ranked_steps, rounds_done
 
 SWITCHES = ("no_affine", "no_desc_dis", "no_desc_rep", "no_det_rep")
 # Fields that may differ between an ablation and its baseline: the switches themselves, the
@@ -42,12 +41,6 @@ def best_step(run: Path, max_round: int | None = None, metric: str | None = None
     if not ranked:
         raise SekdError(f"{run}: no validated step{'' if max_round is None else f' in rounds 0-{max_round}'} yet")
     return ranked[0]
-
-
-def rounds_done(run: Path) -> int:
-    """Rounds whose detector step (d) has finished."""
-    done = json.loads((Path(run) / "state.json").read_text())["done"]
-    return len({task.split("_")[0] for task in done if task.endswith("_d")})
 
 
 def switches_on(config: TrainConfig) -> list[str]:

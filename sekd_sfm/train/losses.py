@@ -29,7 +29,9 @@ def hardest_negatives(d: torch.Tensor, min_distance: float = 0.008, penalty: flo
     picked. ``N x N`` -> ``N``.
     """
     eye = torch.eye(d.shape[0], dtype=torch.bool, device=d.device)
-    never = eye | (d < min_distance) if exclude is None else eye | (d < min_distance) | exclude
+    never = eye | (d < min_distance)
+    if exclude is not None:
+        never |= exclude
     masked = d + penalty * never.to(d.dtype)
     return torch.minimum(masked.min(dim=1).values, masked.min(dim=0).values)
 

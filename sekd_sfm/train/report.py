@@ -101,6 +101,12 @@ def plot_curves(data: dict) -> bytes:
     return buffer.getvalue()
 
 
+def rounds_done(run: Path) -> int:
+    """Rounds of the run folder ``run`` whose detector step (d) has finished."""
+    done = json.loads((Path(run) / "state.json").read_text())["done"]
+    return len({task.split("_")[0] for task in done if task.endswith("_d")})
+
+
 def ranked_steps(run: Path, max_round: int | None = None, metric: str | None = None) -> list[tuple[str, float]]:
     """Validated training steps of the run folder ``run`` as (task, value), best first.
 

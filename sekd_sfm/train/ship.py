@@ -22,7 +22,7 @@ from ..network import SEKDNet, count_parameters
 from ..runtime import shared_dir
 from ..weights import EMBEDDED_MODEL, file_sha256, load_model
 from .config import TrainConfig, load_run_config, schedule_config
-from .report import ranked_steps, write_atomic
+from .report import ranked_steps, rounds_done, write_atomic
 
 logger = logging.getLogger("sekd")
 MAX_BYTES = 3_000_000  # the package carries the model: keep the wheel small
@@ -194,8 +194,7 @@ def _label_rows(run: Path) -> list[str]:
 
 def _progress(run: Path, config: dict) -> str:
     done = json.loads((run / "state.json").read_text())["done"]
-    rounds = len({t.split("_")[0] for t in done if t.endswith("_d")})
-    return f"tasks done: {', '.join(done)} ({rounds} of {config['rounds']} rounds)"
+    return f"tasks done: {', '.join(done)} ({rounds_done(run)} of {config['rounds']} rounds)"
 
 
 def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> str:
@@ -232,8 +231,8 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
         "## Validation during training",
         "",
         f"Homography sequences of the shared data at long side {config['val_long_side']} px, "
-        f"top {config['val_max_keypoints']} keypoints, mutual NN (`train/validate.py`); the run validates after "
-        "each round's step (d); the shipped checkpoint and the reference are scored the same way by `ship.py`.",
+        f"top {config['val_max_keypoints']} keypoints, mutual NN (`train/validate.py`), after each training step "
+        "the run validated (the rows below); the shipped checkpoint and the reference are scored the same way by `ship.py`.",
         "",
         *_validation_rows(run, list(extra)),
         "",

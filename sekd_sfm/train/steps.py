@@ -79,8 +79,9 @@ def descriptor_loss(outputs, reference, batch: dict, cfg: TrainConfig, alpha: fl
             continue
         a = sample_upsampled(d0[b], p[:, 0], p[:, 1], h, w)
         pos = sample_upsampled(d1[b], q[:, 0], q[:, 1], h, w)
+        near = spatial_neighbours(p, cfg.neg_min_pixels) if cfg.neg_min_pixels > 0 else None
         desc = desc + triplet_loss(a, pos, cfg.desc_loss, cfg.ratio_threshold, cfg.margin, cfg.margin_normalise,
-                                   cfg.neg_min_distance, cfg.neg_self_penalty, spatial_neighbours(p, cfg.neg_min_pixels))
+                                   cfg.neg_min_distance, cfg.neg_self_penalty, near)
         used += 1
     desc = desc / l0.shape[0]
     total = desc + alpha * pres
