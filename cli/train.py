@@ -7,8 +7,9 @@ import click
 
 from sekd_sfm.errors import SekdError
 from sekd_sfm.runtime import DEVICES
-from sekd_sfm.train.config import SCHEDULES, parse_set, resolve_config
+from sekd_sfm.train.config import RUNTIME_FIELDS, SCHEDULES, parse_set, resolve_config
 from sekd_sfm.train.evolve import KEYPOINT_SOURCES, STEPS, RunResult, evolve as run_evolve, train_one_step
+from sekd_sfm.train.fork import fork_run
 
 
 def run_options(f):
@@ -64,7 +65,11 @@ def _report(result: RunResult) -> None:
 @click.command()
 @run_options
 @click.option("--rounds", type=click.IntRange(min=1), default=None, help="Self-evolving rounds (schedule: cpu 5).")
-def evolve(images, out, schedule, config_file, settings, seed, device, num_threads, no_progress, resume, rounds) -> None:
+@click.option("--fork", "fork_from", type=click.Path(file_okay=False, exists=True, path_type=Path), default=None,
+              help="Start --out as a copy of this run up to its first step (b), then continue with the --set "
+                   "step-(b) settings or --rounds changed (nothing before is recomputed).")
+def evolve(images, out, schedule, config_file, settings, seed, device, num_threads, no_progress, resume, rounds,
+           fork_from) -> None:
     """Train SEKD from unlabeled images with the paper's self-evolving loop.
 
     \b
@@ -80,8 +85,15 @@ def evolve(images, out, schedule, config_file, settings, seed, device, num_threa
       sekd evolve --images ../shared/data/train/coco --out runs/cpu
       sekd evolve --images photos --out runs/t --schedule tiny --set no_affine=true
       sekd evolve --resume --out runs/cpu
+      sekd evolve --fork runs/cpu --out runs/spread --set spread_weight=1
     """
     overrides = _overrides(images, settings, seed, device, num_threads, no_progress, rounds=rounds)
+    if fork_from is not None:
+        if resume or schedule or config_file or images:
+            raise SekdError("--fork takes the source run's config: drop --resume/--schedule/--config/--images")
+        fork_run(fork_from, out, overrides)
+        click.echo(f"forked {fork_from} into {out}; continuing it")
+        resume, overrides = True, {k: v for k, v in overrides.items() if k in RUNTIME_FIELDS}
     _report(_launch(run_evolve, out, resume, schedule, config_file, overrides, "evolve"))
 
 

@@ -6,7 +6,7 @@ import torch
 
 from sekd_sfm.train.losses import (focal_loss, hardest_negatives, pairwise_distances, preservation_mse,
                                    repeatability_paper, repeatability_weighted, spatial_neighbours,
-                                   triplet_loss)
+                                   spread_out, triplet_loss)
 from sekd_sfm.train.steps import matched_keypoints, sample_upsampled
 
 # Anchors a_i and their matches p_i (unit vectors in 2-D):
@@ -70,6 +70,26 @@ def test_triplet_gradient_finite_for_identical_descriptors():
     loss = triplet_loss(a, a.detach().clone(), "margin")
     loss.backward()
     assert torch.isfinite(a.grad).all()
+
+
+def test_spread_out_by_hand():
+    a = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
+    # Off-diagonal dots a0.p1 = 1, a1.p0 = 0: mean 0.5, mean square 0.5 = 1 / C -> 0.25 + 0.
+    assert spread_out(a, torch.tensor([[1.0, 0.0], [1.0, 0.0]])).item() == pytest.approx(0.25)
+    assert spread_out(a, a).item() == 0.0  # orthogonal: perfectly spread
+    same = torch.tensor([[0.6, 0.8]] * 3)
+    assert spread_out(same, same).item() == pytest.approx(1.0 + (1.0 - 0.5))  # collapsed: mean 1, square 1
+    assert spread_out(a[:1], a[:1]).item() == 0.0  # fewer than 2 rows: no pairs
+
+
+def test_spread_out_pushes_a_common_component_away():
+    torch.manual_seed(0)
+    base = torch.nn.functional.normalize(torch.randn(50, 16), dim=1)
+    common = torch.nn.Parameter(torch.zeros(16))
+    d = torch.nn.functional.normalize(base + 3.0 * torch.ones(16) / 4.0 + common, dim=1)
+    spread_out(d, d).backward()
+    # Gradient descent moves the shared offset against the all-ones direction it came from.
+    assert (-common.grad @ torch.ones(16)).item() < 0
 
 
 def test_focal_loss_by_hand():
@@ -169,4 +189,17 @@ def test_descriptor_loss_assembly_and_round0_alpha():
     assert parts["pres"] == pytest.approx(0.5 * ((l0 - r0) ** 2).mean().item()
                                           + 0.5 * ((outputs[1][0] - reference[1][0]) ** 2).mean().item(), rel=1e-6)
     total, parts = descriptor_loss(outputs, reference, batch, TrainConfig(), alpha=0.0)
-    assert total.item() == pytest.approx(parts["desc"], rel=1e-6)
+    assert total.item() == pytest.approx(parts["desc"], rel=1e-6) and "spread" not in parts
+
+
+def test_descriptor_loss_adds_the_weighted_spread_term():
+    from sekd_sfm.train.config import TrainConfig
+    from sekd_sfm.train.steps import descriptor_loss, sample_upsampled
+
+    outputs, reference, batch = _tiny_batch()
+    total, parts = descriptor_loss(outputs, reference, batch, TrainConfig(spread_weight=2.0), alpha=0.0)
+    # 1 x 1 descriptor maps: both keypoints get the same unit vector in each view.
+    d0 = sample_upsampled(outputs[0][1][0], torch.tensor([1, 2]), torch.tensor([1, 2]), 4, 4)
+    d1 = sample_upsampled(outputs[1][1][0], torch.tensor([1, 2]), torch.tensor([1, 2]), 4, 4)
+    assert parts["spread"] == pytest.approx(spread_out(d0, d1).item(), rel=1e-6) and parts["spread"] > 0
+    assert total.item() == pytest.approx(parts["desc"] + 2.0 * parts["spread"], rel=1e-6)

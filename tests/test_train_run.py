@@ -212,3 +212,50 @@ def test_paper_variants_and_ablations_run(variant, images8, tmp_path):
     assert losses and all(np.isfinite(e["total"]) for e in losses)
     with np.load(tmp_path / "run" / "labels" / "r0_c.npz") as z:
         assert z["counts"].sum() > 0 and (f"map_{z['indices'][0]}" in z) == variant.get("save_maps", False)
+
+
+def test_fork_equals_a_run_started_with_the_changed_setting(images8, tmp_path):
+    from sekd_sfm.train.fork import fork_run
+
+    torch.set_num_threads(1)
+    cfg = quick_config(images8, rounds=2, round0_random=False, epochs_desc=1, epochs_det=1)
+    evolve(tmp_path / "source", cfg)
+    reference = evolve(tmp_path / "reference", quick_config(images8, rounds=2, round0_random=False, epochs_desc=1,
+                                                             epochs_det=1, spread_weight=1.0))
+    fork_run(tmp_path / "source", tmp_path / "fork", {"spread_weight": 1.0})
+    state = json.loads((tmp_path / "fork" / "state.json").read_text())
+    assert state["done"] == ["r0_c", "r0_d", "r1_a"] and state["forked_from"]["changed"] == ["spread_weight"]
+    assert "forked from" in (tmp_path / "fork" / "train.log").read_text().splitlines()[-1]
+    forked = evolve(tmp_path / "fork", None, resume=True)
+    a = torch.load(reference.last, weights_only=True)["state_dict"]
+    b = torch.load(forked.last, weights_only=True)["state_dict"]
+    for key in a:  # reusing round 0 and the (a) labels changes nothing
+        assert torch.equal(a[key], b[key]), key
+    assert load_run_config(tmp_path / "fork" / "config.yaml").spread_weight == 1.0
+
+
+def test_fork_refuses_settings_of_steps_already_run(images8, tmp_path):
+    from sekd_sfm.train.fork import fork_run
+
+    torch.set_num_threads(1)
+    evolve(tmp_path / "source", quick_config(images8, epochs_desc=1, epochs_det=1))
+    with pytest.raises(SekdError, match="lr change steps the source already ran"):
+        fork_run(tmp_path / "source", tmp_path / "fork", {"lr": 1e-4})
+    assert not (tmp_path / "fork" / "state.json").exists()
+    with pytest.raises(SekdError, match="already holds a run"):
+        fork_run(tmp_path / "source", tmp_path / "source", {"spread_weight": 1.0})
+    result = CliRunner().invoke(sekd, ["evolve", "--fork", str(tmp_path / "source"), "--out", str(tmp_path / "f2"),
+                                       "--resume"])
+    assert result.exit_code != 0 and "--fork takes the source run's config" in result.output
+
+
+def test_fork_reuses_the_finished_tasks_before_the_first_changed_step():
+    from sekd_sfm.train.evolve import evolve_tasks
+    from sekd_sfm.train.fork import reusable_tasks
+
+    tasks = evolve_tasks(resolve_config("cpu", None, {"rounds": 3}))
+    done = ["start", "r0_c", "r0_d", "r1_a", "r1_b", "r1_c"]
+    assert [t.id for t in reusable_tasks(tasks, done, ["spread_weight", "rounds"])] == ["r0_c", "r0_d", "r1_a"]
+    assert [t.id for t in reusable_tasks(tasks, done, ["rounds", "num_threads"])] == done[1:]
+    with pytest.raises(SekdError, match="no_affine"):
+        reusable_tasks(tasks, done, ["no_affine", "alpha"])

@@ -97,6 +97,7 @@ class TrainConfig:
     neg_min_distance: float = 0.008  # negatives closer than this count as the same point
     neg_self_penalty: float = 10.0
     neg_min_pixels: float = 0.0      # [cpu] negatives nearer than this (px, view 0) are skipped; 0 = spec
+    spread_weight: float = 0.0       # weight of the spread-out term (keeps descriptors from collapsing); 0 = spec
     alpha: float = 1.0               # detector preservation weight
     det_preserve_on: str = "logits"  # [code] 2-channel logits; [paper] probabilities
     # --- step (d): detector (§6) ---------------------------------------------------------

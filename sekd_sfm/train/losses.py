@@ -55,6 +55,22 @@ def triplet_loss(a: torch.Tensor, p: torch.Tensor, form: str = "ratio", ratio_th
     return terms.sum() / count
 
 
+def spread_out(a: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Global orthogonal regularisation (Zhang et al. 2017, "Learning spread-out local feature descriptors").
+
+    Over the non-matching pairs ``a_i . p_j`` (i != j) of ``N x C`` unit descriptors:
+    ``mean^2 + max(0, mean of squares - 1 / C)``, zero when they are spread like random unit
+    vectors (mean 0, second moment 1 / C). The triplet losses are unchanged by a common
+    component added to every descriptor except that it shrinks all their distances alike,
+    which lowers a positive loss: this term pushes back. Scalar; 0 for fewer than 2 rows.
+    """
+    n = a.shape[0]
+    if n < 2:
+        return a.new_zeros(())
+    dots = (a @ p.t())[~torch.eye(n, dtype=torch.bool, device=a.device)]
+    return dots.mean() ** 2 + F.relu(dots.pow(2).mean() - 1.0 / a.shape[1])
+
+
 def preservation_mse(new: tuple[torch.Tensor, ...], old: tuple[torch.Tensor, ...]) -> torch.Tensor:
     """``mean_v MSE(new_v, old_v)`` over the views: ``0.5 (MSE(X0, X0') + MSE(X1, X1'))`` for two."""
     return sum(F.mse_loss(n, o) for n, o in zip(new, old)) / len(new)

@@ -197,6 +197,17 @@ def _progress(run: Path, config: dict) -> str:
     return f"tasks done: {', '.join(done)} ({rounds_done(run)} of {config['rounds']} rounds)"
 
 
+def _fork_rows(run: Path) -> list[str]:
+    """A card row saying which run a forked run copied its first steps from (``sekd evolve --fork``)."""
+    state = json.loads((run / "state.json").read_text()) if (run / "state.json").is_file() else {}
+    fork = state.get("forked_from")
+    if not fork:
+        return []
+    return [f"| forked | from `{Path(fork['run']).name}` after `{fork['after']}` (`sekd evolve --fork`; changed: "
+            f"{', '.join(fork['changed'])}): the steps up to there were computed once, for that run, with the "
+            "same settings; the command above reproduces the same model |"]
+
+
 def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> str:
     """Markdown: what, data, schedule, command, wall time, seed, validation per round, checksum."""
     config = meta["config"]
@@ -227,6 +238,7 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
         f"| wall time | {hours:.2f} h of training on a 2-core CPU (no GPU) up to this model, summed over the "
         "resumed sessions |",
         f"| command | `{meta['command']}` (resumed with `sekd evolve --resume --out ...`) |",
+        *_fork_rows(run),
         "",
         "## Validation during training",
         "",

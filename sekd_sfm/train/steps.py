@@ -23,7 +23,7 @@ from .data import PairDataset, TrainImages, rng_for
 from .distributed import Context, check_in_sync, shard, sum_across, sync_buffers, wrap
 from .labels import Labels
 from .losses import (focal_loss, preservation_mse, repeatability_paper, repeatability_weighted,
-                     spatial_neighbours, triplet_loss)
+                     spatial_neighbours, spread_out, triplet_loss)
 from .model import frozen_copy
 
 logger = logging.getLogger("sekd.train")
@@ -65,14 +65,18 @@ def matched_keypoints(label0: torch.Tensor, corr: torch.Tensor, dense: bool = Fa
 
 
 def descriptor_loss(outputs, reference, batch: dict, cfg: TrainConfig, alpha: float) -> tuple[torch.Tensor, dict]:
-    """L1 = Ldesc + alpha Lpres for a batch (§4). ``outputs``/``reference``: forward_train results of both views."""
+    """L1 = Ldesc + alpha Lpres (§4), plus ``spread_weight`` x spread-out term when set, for a batch.
+
+    ``outputs``/``reference``: forward_train results of both views. Ldesc and the spread term are
+    summed over the samples with at least 2 correspondences and divided by the batch size.
+    """
     (l0, d0, _), (l1, d1, _) = outputs
     (r0, _, _), (r1, _, _) = reference
     if cfg.det_preserve_on == "prob":
         l0, l1, r0, r1 = (F.softmax(t, dim=1)[:, 1] for t in (l0, l1, r0, r1))
     pres = preservation_mse((l0, l1), (r0, r1))
     h, w = batch["label0"].shape[-2:]
-    desc, used = l0.new_zeros(()), 0
+    desc, spread, used = l0.new_zeros(()), l0.new_zeros(()), 0
     for b in range(l0.shape[0]):
         p, q = matched_keypoints(batch["label0"][b], batch["corr"][b])
         if len(p) < 2:
@@ -82,10 +86,15 @@ def descriptor_loss(outputs, reference, batch: dict, cfg: TrainConfig, alpha: fl
         near = spatial_neighbours(p, cfg.neg_min_pixels) if cfg.neg_min_pixels > 0 else None
         desc = desc + triplet_loss(a, pos, cfg.desc_loss, cfg.ratio_threshold, cfg.margin, cfg.margin_normalise,
                                    cfg.neg_min_distance, cfg.neg_self_penalty, near)
+        if cfg.spread_weight > 0:
+            spread = spread + spread_out(a, pos)
         used += 1
-    desc = desc / l0.shape[0]
-    total = desc + alpha * pres
-    return total, {"total": total.item(), "desc": desc.item(), "pres": pres.item(), "used": used / l0.shape[0]}
+    desc, spread = desc / l0.shape[0], spread / l0.shape[0]
+    total = desc + cfg.spread_weight * spread + alpha * pres
+    parts = {"total": total.item(), "desc": desc.item(), "pres": pres.item(), "used": used / l0.shape[0]}
+    if cfg.spread_weight > 0:
+        parts["spread"] = spread.item()
+    return total, parts
 
 
 def detector_loss(outputs, reference, batch: dict, cfg: TrainConfig, bg_weight: float) -> tuple[torch.Tensor, dict]:
