@@ -48,9 +48,9 @@ def main() -> None:
     rows = []
 
     def after_epoch(epoch: int, state: dict) -> None:
+        # evaluate() scores a plain copy, so the training network stays in train mode
         metrics = evaluate(net, sequences, cfg.val_long_side, cfg.val_max_keypoints, cfg.val_threshold,
                            cfg.val_nms_radius, ctx.device)
-        net.train()  # evaluate() ran a copy, but keep the step's mode explicit
         row = {"epoch": epoch + 1, **{k: v for k, v in {**state["history"][-1], **metrics}.items() if k in SHOWN}}
         rows.append(row)
         print(json.dumps(row), flush=True)

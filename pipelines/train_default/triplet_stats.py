@@ -27,6 +27,7 @@ from sekd_sfm.train.data import PairDataset, TrainImages
 from sekd_sfm.train.labels import Labels
 from sekd_sfm.train.losses import hardest_negatives, pairwise_distances, triplet_loss
 from sekd_sfm.train.steps import matched_keypoints, sample_upsampled
+from sekd_sfm.train.validate import mean_pairwise_cosine
 from sekd_sfm.weights import load_model
 
 COLUMNS = ("keypoints", "pos", "hardest neg", "random neg", "pos < neg", "ratio loss", "cosine")
@@ -42,9 +43,8 @@ def pair_stats(net, pair: dict, rng: np.random.Generator) -> list[float]:
     d = pairwise_distances(a, b)
     pos, neg = d.diagonal(), hardest_negatives(d)
     other = (np.arange(len(d)) + rng.integers(1, len(d), len(d))) % len(d)  # never the keypoint itself
-    cosine = ((a @ a.t()).sum() - len(a)) / (len(a) * (len(a) - 1))
     return [len(p), pos.mean().item(), neg.mean().item(), d[np.arange(len(d)), other].mean().item(),
-            (pos < neg).float().mean().item(), triplet_loss(a, b).item(), cosine.item()]
+            (pos < neg).float().mean().item(), triplet_loss(a, b).item(), mean_pairwise_cosine(a.numpy())]
 
 
 def main() -> None:

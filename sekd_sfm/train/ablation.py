@@ -15,7 +15,7 @@ import dataclasses
 from pathlib import Path
 
 from ..errors import SekdError
-from .config import RUNTIME_FIELDS, TrainConfig, load_run_config
+from .config import RUNTIME_FIELDS, TrainConfig, differing_fields, load_run_config
 from .report import ranked_steps, rounds_done
 
 SWITCHES = ("no_affine", "no_desc_dis", "no_desc_rep", "no_det_rep")
@@ -49,8 +49,7 @@ def switches_on(config: TrainConfig) -> list[str]:
 
 def check_same_recipe(baseline: TrainConfig, ablation: TrainConfig, where: Path) -> None:
     """SekdError unless ``ablation`` = ``baseline`` + exactly one switch (rounds and hardware aside)."""
-    differ = [f.name for f in dataclasses.fields(TrainConfig)
-              if f.name not in FREE_FIELDS and getattr(baseline, f.name) != getattr(ablation, f.name)]
+    differ = differing_fields(baseline, ablation, ignore=FREE_FIELDS)
     if differ:
         raise SekdError(f"{where}: not the baseline's recipe ({', '.join(differ)} differ); "
                         "start ablations with the baseline's config file")

@@ -247,6 +247,13 @@ def validate(config: TrainConfig) -> None:
         raise SekdError("config key 'num_warps' must be >= 1 (step (c) needs a warped view)")
 
 
+def differing_fields(a: TrainConfig, b: TrainConfig, ignore: typing.Iterable[str] = ()) -> list[str]:
+    """Names of the fields (in declaration order) whose values differ, except those in ``ignore``."""
+    skip = set(ignore)
+    return [f.name for f in dataclasses.fields(TrainConfig)
+            if f.name not in skip and getattr(a, f.name) != getattr(b, f.name)]
+
+
 def load_run_config(path: Path) -> TrainConfig:
     """The resolved config saved in a run folder."""
     config = apply(TrainConfig(), read_yaml(path), str(path))

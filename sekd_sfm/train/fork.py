@@ -16,9 +16,9 @@ import shutil
 from pathlib import Path
 
 from ..errors import SekdError
-from .config import RUNTIME_FIELDS, TrainConfig, apply, load_run_config, validate as validate_config
+from .config import RUNTIME_FIELDS, TrainConfig, apply, differing_fields, validate as validate_config
 from .evolve import RunFolder, Task, evolve_tasks
-from .report import write_atomic
+from .report import rank_validation, write_atomic
 
 #: Settings only step (b) reads (SPEC_TRAINING §4 and the descriptor-step extensions).
 DESC_STEP_FIELDS = ("epochs_desc", "desc_loss", "ratio_threshold", "margin", "margin_normalise",
@@ -26,11 +26,6 @@ DESC_STEP_FIELDS = ("epochs_desc", "desc_loss", "ratio_threshold", "margin", "ma
                     "alpha", "det_preserve_on")
 #: Settings that change no finished task: rounds only append or drop later tasks.
 FREE_FIELDS = ("rounds",) + RUNTIME_FIELDS
-
-
-def changed_fields(old: TrainConfig, new: TrainConfig) -> list[str]:
-    """Names of the config fields whose values differ."""
-    return [f.name for f in dataclasses.fields(TrainConfig) if getattr(old, f.name) != getattr(new, f.name)]
 
 
 def reusable_tasks(tasks: list[Task], done: list[str], changed: list[str]) -> list[Task]:
@@ -55,16 +50,17 @@ def fork_run(source: Path, out: Path, overrides: dict) -> Path:
     old_config, old_tasks, old_state = src.read(None)
     config = apply(old_config, dict(overrides), "--fork")
     validate_config(config)
-    changed = changed_fields(old_config, config)
+    changed = differing_fields(old_config, config)
     reused = reusable_tasks(old_tasks, old_state["done"], changed)
     tasks = evolve_tasks(config)
     reused = reused[:len(tasks)]  # fewer rounds: the later finished tasks are not part of the fork
     if [t.id for t in tasks[:len(reused)]] != [t.id for t in reused]:
         raise SekdError(f"{source}: not a `sekd evolve` run of this schedule; --fork continues evolve runs only")
-    _copy_outputs(src, dst, reused)
     ids = (["start"] if "start" in old_state["done"] else []) + [t.id for t in reused]
     history = _history_upto(src.root, ids)
-    state = {"tasks": [dataclasses.asdict(t) for t in tasks], "done": ids, "best": _best(history, config),
+    best = _best(history, config)
+    _copy_outputs(src, dst, reused, best)
+    state = {"tasks": [dataclasses.asdict(t) for t in tasks], "done": ids, "best": best,
              "forked_from": {"run": str(Path(source).resolve()), "after": ids[-1], "changed": changed}}
     write_atomic(dst.root / "config.yaml", config.to_yaml())
     write_atomic(dst.root / "history.json", json.dumps(history, indent=1))
@@ -73,7 +69,7 @@ def fork_run(source: Path, out: Path, overrides: dict) -> Path:
     return dst.root
 
 
-def _copy_outputs(src: RunFolder, dst: RunFolder, reused: list[Task]) -> None:
+def _copy_outputs(src: RunFolder, dst: RunFolder, reused: list[Task], best: dict | None) -> None:
     for sub in ("labels", "models", "checkpoints"):
         (dst.root / sub).mkdir(parents=True, exist_ok=True)
     for task in reused:
@@ -83,9 +79,10 @@ def _copy_outputs(src: RunFolder, dst: RunFolder, reused: list[Task]) -> None:
             raise SekdError(f"{path}: missing, so {task.id} of {src.root} cannot be reused")
         shutil.copy2(path, target)
     trained = [t for t in reused if t.training]
-    if trained:  # best.pth / last.pth stand for the latest reused model until the fork validates its own
-        for name in ("last.pth", "best.pth"):
-            shutil.copy2(src.model_path(trained[-1].id), dst.root / name)
+    if trained:  # last.pth: the latest reused model until the fork trains its own
+        shutil.copy2(src.model_path(trained[-1].id), dst.root / "last.pth")
+    if best is not None:  # best.pth: the model the state names best (the fork's own steps may beat it)
+        shutil.copy2(src.model_path(best["task"]), dst.root / "best.pth")
 
 
 def _history_upto(run: Path, ids: list[str]) -> dict:
@@ -95,11 +92,9 @@ def _history_upto(run: Path, ids: list[str]) -> dict:
 
 
 def _best(history: dict, config: TrainConfig) -> dict | None:
-    rows = [r for r in history.get("validation", []) if r.get("task") != "start"]
-    if not rows:
-        return None
-    top = max(rows, key=lambda r: r[config.best_metric])
-    return {"task": top["task"], "metric": config.best_metric, "value": top[config.best_metric]}
+    """The state's ``best`` record for the reused validations (None when only the start was validated)."""
+    ranked = rank_validation(history.get("validation", []), config.best_metric)
+    return {"task": ranked[0][0], "metric": config.best_metric, "value": ranked[0][1]} if ranked else None
 
 
 def _task_marker(task: Task) -> re.Pattern:

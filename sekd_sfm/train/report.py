@@ -115,6 +115,10 @@ def ranked_steps(run: Path, max_round: int | None = None, metric: str | None = N
     """
     metric = metric or load_run_config(Path(run) / "config.yaml").best_metric
     path = Path(run) / "metrics.json"
-    rows = json.loads(path.read_text()) if path.is_file() else []
+    return rank_validation(json.loads(path.read_text()) if path.is_file() else [], metric, max_round)
+
+
+def rank_validation(rows: list[dict], metric: str, max_round: int | None = None) -> list[tuple[str, float]]:
+    """Validation rows as (task, value) of ``metric``, best first (ties keep their order); the start is skipped."""
     rows = [r for r in rows if r["task"] != "start" and (max_round is None or r["round"] <= max_round)]
     return [(r["task"], float(r[metric])) for r in sorted(rows, key=lambda r: -r[metric])]
