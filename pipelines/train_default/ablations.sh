@@ -1,17 +1,17 @@
 #!/usr/bin/env bash
 # The paper's Table 4 ablations with our own training: the default model's recipe (the config
-# of the run folder BASE, default run_v2: cpu schedule, seed 0, the 256 shared COCO photos)
+# of the run folder BASE, default run_v3: the embedded model's recipe, seed 0, the 256 shared COCO photos)
 # with one switch on each, for ROUNDS rounds (default 2: ~1 h each on 2 cores), then
 # `sekd bench homography` of each ablation's best step against the baseline's best step
 # within the same rounds (python -m sekd_sfm.train.ablation chooses and checks them).
-# Usage: [ROUNDS=2] [BASE=run_v2] [OUT=bench-ablations] pipelines/train_default/ablations.sh [SWITCH ...]
+# Usage: [ROUNDS=2] [BASE=run_v3] [OUT=bench-ablations] pipelines/train_default/ablations.sh [SWITCH ...]
 #        (default: all four switches, in order; extra sekd evolve options after `--`)
 # Resumable: run it again to continue each run where it stopped. Run folders: ablations/<switch>/.
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
 export SEKD_SHARED=$(cd "${SEKD_SHARED:-$HERE/../../../shared}" && pwd)
 ROUNDS=${ROUNDS:-2}
-BASE=$HERE/${BASE:-run_v2}
+BASE=$HERE/${BASE:-run_v3}
 OUT=${OUT:-bench-ablations}
 SWITCHES=()
 while [ $# -gt 0 ] && [ "$1" != "--" ]; do SWITCHES+=("$1"); shift; done
