@@ -108,9 +108,8 @@ def test_ship_auto_takes_the_best_validated_step_that_passes_the_guard(monkeypat
         ship.best_guarded_step(RUN)
 
 
-def test_card_names_the_run_a_forked_run_came_from(tmp_path):
-    assert ship._fork_rows(tmp_path) == []  # no state: not forked
-    (tmp_path / "state.json").write_text('{"done": [], "forked_from": {"run": "/x/run_v2", "after": "r1_a", '
-                                         '"changed": ["spread_weight"]}}')
-    (row,) = ship._fork_rows(tmp_path)
+def test_card_names_the_run_a_forked_run_came_from():
+    assert ship._fork_rows({"done": []}) == []  # not forked
+    state = {"done": [], "forked_from": {"run": "/x/run_v2", "after": "r1_a", "changed": ["spread_weight"]}}
+    (row,) = ship._fork_rows(state)
     assert row.startswith("| forked | from `run_v2` after `r1_a`") and "spread_weight" in row

@@ -106,7 +106,7 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODEL, card: Path | None = None,
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(dest.name + ".tmp")
-    torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)
+    torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)  # size first: scoring takes minutes
     size = tmp.stat().st_size
     tmp.unlink()
     if size > MAX_BYTES:
@@ -192,14 +192,12 @@ def _label_rows(run: Path) -> list[str]:
     return lines
 
 
-def _progress(run: Path, config: dict) -> str:
-    done = json.loads((run / "state.json").read_text())["done"]
-    return f"tasks done: {', '.join(done)} ({rounds_done(run)} of {config['rounds']} rounds)"
+def _progress(run: Path, state: dict, config: dict) -> str:
+    return f"tasks done: {', '.join(state['done'])} ({rounds_done(run)} of {config['rounds']} rounds)"
 
 
-def _fork_rows(run: Path) -> list[str]:
+def _fork_rows(state: dict) -> list[str]:
     """A card row saying which run a forked run copied its first steps from (``sekd evolve --fork``)."""
-    state = json.loads((run / "state.json").read_text()) if (run / "state.json").is_file() else {}
     fork = state.get("forked_from")
     if not fork:
         return []
@@ -211,6 +209,7 @@ def _fork_rows(run: Path) -> list[str]:
 def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> str:
     """Markdown: what, data, schedule, command, wall time, seed, validation per round, checksum."""
     config = meta["config"]
+    state = json.loads((run / "state.json").read_text())
     n_params = count_parameters(SEKDNet())
     hours = meta["wall_seconds"] / 3600
     lines = [
@@ -234,11 +233,11 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
         f"batch {config['batch_size']}, {config['epochs_desc']} + {config['epochs_det']} epochs per step, "
         f"lr {config['lr']} |",
         f"| seed | {config['seed']} |",
-        f"| progress | {_progress(run, config)} |",
+        f"| progress | {_progress(run, state, config)} |",
         f"| wall time | {hours:.2f} h of training on a 2-core CPU (no GPU) up to this model, summed over the "
         "resumed sessions |",
         f"| command | `{meta['command']}` (resumed with `sekd evolve --resume --out ...`) |",
-        *_fork_rows(run),
+        *_fork_rows(state),
         "",
         "## Validation during training",
         "",
