@@ -29,7 +29,8 @@ class Sequence:
         return self.name[0] if self.name[:2] in ("i_", "v_") else "?"
 
 
-def _is_sequence(folder: Path) -> bool:
+def is_sequence(folder: Path) -> bool:
+    """Whether ``folder`` is one sequence (it holds ``H_1_2``)."""
     return (folder / "H_1_2").is_file()
 
 
@@ -51,7 +52,7 @@ def find_sequences(roots: list[Path]) -> list[Sequence]:
     for root in map(Path, roots):
         if not root.is_dir():
             raise SekdError(f"{root}: folder not found; give HPatches-layout sequence folders or their parent")
-        folders = [root] if _is_sequence(root) else sorted(p for p in root.iterdir() if p.is_dir() and _is_sequence(p))
+        folders = [root] if is_sequence(root) else sorted(p for p in root.iterdir() if p.is_dir() and is_sequence(p))
         sequences += [read_sequence(f) for f in folders]
     if not sequences:
         raise SekdError(f"no homography sequences (folders with 1.*, 2.*, H_1_2) found in {', '.join(map(str, roots))}")

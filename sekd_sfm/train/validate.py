@@ -17,11 +17,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..errors import SekdError
 from ..bench import metrics
-from ..images import IMAGE_EXTENSIONS, read_image, resize_max_side, resized_to_original_matrix
-from ..match import match_descriptors
+from ..bench.datasets import is_sequence, read_sequence
+from ..errors import SekdError
+from ..images import read_image, resize_max_side, resized_to_original_matrix
 from ..inference import SEKDConfig, SEKDExtractor
+from ..match import match_descriptors
 from ..runtime import shared_dir
 from .model import plain_copy
 
@@ -42,19 +43,11 @@ def find_sequences(patterns: list[str]) -> list[Path]:
     found = []
     for pattern in patterns:
         base = pattern if Path(pattern).is_absolute() else str(shared_dir() / pattern)
-        found += [Path(p) for p in glob.glob(base) if (Path(p) / "H_1_2").is_file()]
+        found += [Path(p) for p in glob.glob(base) if is_sequence(Path(p))]
     if not found:
         raise SekdError(f"no homography sequences (folders with H_1_2) match val_sets {patterns}; "
                         "set SEKD_SHARED or --set validate=false")
     return sorted(set(found))
-
-
-def _image_file(folder: Path, index: int) -> Path:
-    for ext in IMAGE_EXTENSIONS:
-        for candidate in (folder / f"{index}{ext}", folder / f"{index}{ext.upper()}"):
-            if candidate.is_file():
-                return candidate
-    raise SekdError(f"{folder}: image {index}.* missing")
 
 
 def _prepare(path: Path, long_side: int) -> tuple[np.ndarray, np.ndarray]:
@@ -66,12 +59,11 @@ def _prepare(path: Path, long_side: int) -> tuple[np.ndarray, np.ndarray]:
 @lru_cache(maxsize=32)
 def load_sequence(folder: Path, long_side: int) -> Sequence:
     """Images ``1..N`` of a sequence, resized, and each ``H_1_k`` re-expressed in resized pixels."""
-    count = 1 + sum(1 for _ in folder.glob("H_1_*"))
-    first, s1 = _prepare(_image_file(folder, 1), long_side)
+    files = read_sequence(folder)
+    first, s1 = _prepare(files.images[1], long_side)
     images, homographies = [first], []
-    for k in range(2, count + 1):
-        image, sk = _prepare(_image_file(folder, k), long_side)
-        h = np.loadtxt(folder / f"H_1_{k}")
+    for k, h in sorted(files.homographies.items()):
+        image, sk = _prepare(files.images[k], long_side)
         images.append(image)
         homographies.append(np.linalg.inv(sk) @ h @ s1)
     return Sequence(folder.name, tuple(images), tuple(homographies))
