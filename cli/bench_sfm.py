@@ -9,7 +9,7 @@ from sekd_sfm.features import FEATURE_TYPES
 
 from .match import match_config, match_options
 from .options import feature_options, runtime_options, weights_option
-from .reconstruct import camera_options, feature_config
+from .reconstruct import camera_options, feature_config, mapper_option, seed_option
 
 
 @click.command()
@@ -21,8 +21,8 @@ from .reconstruct import camera_options, feature_config
 @runtime_options
 @match_options
 @camera_options
-@click.option("--mapper", multiple=True, metavar="KEY=VALUE", help="pycolmap mapper option for our pipeline.")
-@click.option("--seed", type=int, default=0, show_default=True)
+@mapper_option
+@seed_option
 @click.option("--no-baseline", is_flag=True, help="Skip pycolmap's SIFT pipeline.")
 @click.option("-m", "--method", "methods", multiple=True,
               help="Run our pipeline once per method ([LABEL=]FEATURE[:WEIGHTS], as `bench homography`), "

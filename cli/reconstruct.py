@@ -57,6 +57,14 @@ def _print_option_help(ctx: click.Context, param: click.Parameter, values) -> tu
     ctx.exit(0)
 
 
+mapper_option = click.option(
+    "--mapper", multiple=True, metavar="KEY=VALUE", callback=_print_option_help,
+    help="Set an option of pycolmap's IncrementalPipelineOptions, e.g. mapper.init_min_tri_angle=8 "
+         "(repeatable; `--mapper help` lists them).")
+seed_option = click.option("--seed", type=int, default=0, show_default=True,
+                           help="Random seed of RANSAC and the mapper.")
+
+
 @click.command()
 @click.argument("images", type=click.Path(file_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True,
@@ -67,13 +75,11 @@ def _print_option_help(ctx: click.Context, param: click.Parameter, values) -> tu
 @pairs_options
 @match_options
 @camera_options
-@click.option("--mapper", multiple=True, metavar="KEY=VALUE", callback=_print_option_help,
-              help="Set an option of pycolmap's IncrementalPipelineOptions, e.g. mapper.init_min_tri_angle=8 "
-                   "(repeatable; `--mapper help` lists them).")
+@mapper_option
 @click.option("--verification", multiple=True, metavar="KEY=VALUE", callback=_print_option_help,
               help="Set an option of pycolmap's TwoViewGeometryOptions, e.g. ransac.max_error=2 "
                    "(repeatable; `--verification help` lists them).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed of RANSAC and the mapper.")
+@seed_option
 @click.option("--overwrite", is_flag=True, help="Recompute features and matches instead of reusing them.")
 @click.option("--no-progress", is_flag=True, help="No progress bars.")
 def reconstruct(images, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel,
