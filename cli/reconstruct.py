@@ -60,7 +60,8 @@ def _print_option_help(ctx: click.Context, param: click.Parameter, values) -> tu
 mapper_option = click.option(
     "--mapper", multiple=True, metavar="KEY=VALUE", callback=_print_option_help,
     help="Set an option of pycolmap's IncrementalPipelineOptions, e.g. mapper.init_min_tri_angle=8 "
-         "(repeatable; `--mapper help` lists them).")
+         "(repeatable; `--mapper help` lists them). The mapper runs on one thread, the only way COLMAP "
+         "repeats a model for a --seed; num_threads=-1 uses all cores (faster on large scenes).")
 seed_option = click.option("--seed", type=int, default=0, show_default=True,
                            help="Random seed of RANSAC and the mapper.")
 

@@ -15,7 +15,7 @@ from sekd_sfm.extract import describe_config
 from sekd_sfm.features import FeatureConfig, build_extractor
 from sekd_sfm.sfm.colmap import open_database, require_pycolmap, set_options
 from sekd_sfm.sfm.database import CameraConfig, parse_camera_params
-from sekd_sfm.sfm.mapping import run_mapper
+from sekd_sfm.sfm.mapping import mapper_options, run_mapper
 from sekd_sfm.sfm.reconstruct import ReconstructConfig, reconstruct
 
 pycolmap = require_pycolmap()
@@ -43,6 +43,12 @@ def test_set_options_typed_and_nested():
     assert options.min_num_matches == 30 and options.mapper.init_min_tri_angle == 8.5
     assert options.multiple_models is False and options.triangulation.ignore_two_view_tracks is True
     assert options.mapper.image_selection_method == pycolmap.ImageSelectionMethod.MAX_VISIBLE_POINTS_NUM
+
+
+def test_mapper_runs_on_one_thread_unless_told():
+    assert mapper_options().num_threads == 1  # COLMAP's mapper repeats itself only on one thread
+    assert mapper_options(["num_threads=-1"], seed=3).num_threads == -1
+    assert mapper_options(seed=3).random_seed == 3
 
 
 @pytest.mark.parametrize("assignment,message", [
@@ -327,6 +333,7 @@ def created(path) -> str:
 
 def test_sacre_coeur_rerun_reuses_features_and_matches(sacre_coeur):
     out, args, _ = sacre_coeur
+    first_model = json.loads((out / "stats.json").read_text())["model"]
     before = {"features": created(out / "features.h5"), "matches": created(out / "matches.h5"),
               "pairs mtime": (out / "pairs.txt").stat().st_mtime_ns,
               "matches mtime": (out / "matches.h5").stat().st_mtime_ns}
@@ -335,7 +342,8 @@ def test_sacre_coeur_rerun_reuses_features_and_matches(sacre_coeur):
     assert before == {"features": created(out / "features.h5"), "matches": created(out / "matches.h5"),
                       "pairs mtime": (out / "pairs.txt").stat().st_mtime_ns,
                       "matches mtime": (out / "matches.h5").stat().st_mtime_ns}
-    assert json.loads((out / "stats.json").read_text())["model"]["registered_images"] >= 9
+    # Same matches, same seed, the mapper on one thread (the default): the same model, to the last point.
+    assert json.loads((out / "stats.json").read_text())["model"] == first_model
     # A different feature setting is refused rather than mixed into the existing files.
     result = CliRunner().invoke(sekd, args + ["--max-keypoints", "3000"])
     assert result.exit_code == 1 and "was made with a different configuration" in result.output

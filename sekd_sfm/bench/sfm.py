@@ -125,7 +125,7 @@ def run_pycolmap_sift(scene: Path, work: Path, resize_max: int, camera_mode: str
         times["extract"] = time.perf_counter() - start
         pycolmap.match_exhaustive(str(database), device=pycolmap.Device.cpu)
         times["match+verification"] = time.perf_counter() - start - times["extract"]
-        models = run_mapper(database, scene / "images", mapper_options([], seed, num_threads), progress=False)
+        models = run_mapper(database, scene / "images", mapper_options([], seed), progress=False)
     wall = time.perf_counter() - start
     times["mapping"] = wall - times["extract"] - times["match+verification"]
     return {"method": "pycolmap SIFT pipeline", "wall_time_s": round(wall, 1),

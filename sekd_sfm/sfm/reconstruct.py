@@ -96,7 +96,7 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
 
 def _run(image_dir, out, config, timer, stats, overwrite, num_threads, progress) -> Path:
     # Options are checked first, so a typo fails in a second, not after extraction and matching.
-    options = mapper_options(config.mapper, config.seed, num_threads)
+    options = mapper_options(config.mapper, config.seed)
     two_view = two_view_options(config.verification, config.seed)
     parse_camera_params(config.camera.model, config.camera.params)
     with timer("extract"):
