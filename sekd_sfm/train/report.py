@@ -103,7 +103,11 @@ def plot_curves(data: dict) -> bytes:
 
 def rounds_done(run: Path) -> int:
     """Rounds of the run folder ``run`` whose detector step (d) has finished."""
-    done = json.loads((Path(run) / "state.json").read_text())["done"]
+    return finished_rounds(json.loads((Path(run) / "state.json").read_text())["done"])
+
+
+def finished_rounds(done: list[str]) -> int:
+    """Rounds whose detector step (d) is among the finished task ids ``done`` (``r1_d``, ...)."""
     return len({task.split("_")[0] for task in done if task.endswith("_d")})
 
 

@@ -22,7 +22,7 @@ from ..network import SEKDNet, count_parameters
 from ..runtime import shared_dir
 from ..weights import EMBEDDED_MODEL, file_sha256, load_model
 from .config import TrainConfig, load_run_config, schedule_config
-from .report import ranked_steps, rounds_done, write_atomic
+from .report import finished_rounds, ranked_steps, write_atomic
 
 logger = logging.getLogger("sekd")
 MAX_BYTES = 3_000_000  # the package carries the model: keep the wheel small
@@ -192,8 +192,8 @@ def _label_rows(run: Path) -> list[str]:
     return lines
 
 
-def _progress(run: Path, state: dict, config: dict) -> str:
-    return f"tasks done: {', '.join(state['done'])} ({rounds_done(run)} of {config['rounds']} rounds)"
+def _progress(state: dict, config: dict) -> str:
+    return f"tasks done: {', '.join(state['done'])} ({finished_rounds(state['done'])} of {config['rounds']} rounds)"
 
 
 def _fork_rows(state: dict) -> list[str]:
@@ -233,7 +233,7 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
         f"batch {config['batch_size']}, {config['epochs_desc']} + {config['epochs_det']} epochs per step, "
         f"lr {config['lr']} |",
         f"| seed | {config['seed']} |",
-        f"| progress | {_progress(run, state, config)} |",
+        f"| progress | {_progress(state, config)} |",
         f"| wall time | {hours:.2f} h of training on a 2-core CPU (no GPU) up to this model, summed over the "
         "resumed sessions |",
         f"| command | `{meta['command']}` (resumed with `sekd evolve --resume --out ...`) |",
