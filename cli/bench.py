@@ -145,7 +145,7 @@ def summary(homography_results, pose_results, sfm_results, output, highlight) ->
     click.echo(f"summary: {path} and {path.with_suffix('.png')}")
 
 
-from . import bench_sfm  # noqa: E402  (SfM benchmarks live in their own module)
+from . import bench_sfm
 
 bench.add_command(bench_sfm.sfm)
 bench.add_command(bench_sfm.ratios)

@@ -48,7 +48,7 @@ def _register() -> None:
     sekd.add_command(reconstruct.relpose)
     sekd.add_command(reconstruct.export)
     from . import train as train_commands
-    sekd.add_command(train_commands.evolve); sekd.add_command(train_commands.train)  # noqa: E702
+    sekd.add_command(train_commands.evolve); sekd.add_command(train_commands.train)
 
 
 _register()

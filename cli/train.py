@@ -8,7 +8,8 @@ import click
 from sekd_sfm.errors import SekdError
 from sekd_sfm.runtime import DEVICES
 from sekd_sfm.train.config import RUNTIME_FIELDS, SCHEDULES, parse_set, resolve_config
-from sekd_sfm.train.evolve import KEYPOINT_SOURCES, STEPS, RunResult, evolve as run_evolve, train_one_step
+from sekd_sfm.train.evolve import KEYPOINT_SOURCES, STEPS, RunResult, train_one_step
+from sekd_sfm.train.evolve import evolve as run_evolve
 from sekd_sfm.train.fork import fork_run
 
 

@@ -14,7 +14,13 @@ from tqdm import tqdm
 from . import featurefile as ff
 from .errors import Interrupted, SekdError
 from .features import FeatureConfig, build_extractor
-from .images import ImageReadError, list_images, read_image, resize_max_side, to_original_pixels
+from .images import (
+    ImageReadError,
+    list_images,
+    read_image,
+    resize_max_side,
+    to_original_pixels,
+)
 from .runtime import package_versions, set_num_threads
 
 logger = logging.getLogger("sekd")

@@ -6,8 +6,8 @@ Module and parameter names match the released checkpoint so that
 from __future__ import annotations
 
 import torch
-from torch import nn
 import torch.nn.functional as F
+from torch import nn
 
 DESCRIPTOR_DIM = 128
 #: Input height and width must be multiples of this (two stride-2 stages).
@@ -95,7 +95,7 @@ class BlockDiagonalConvTranspose2d(nn.ConvTranspose2d):
     convolutions on the CPU (3x at the decoder's last layer).
     """
 
-    def forward(self, x: torch.Tensor, output_size=None) -> torch.Tensor:  # noqa: ARG002 - fixed output size
+    def forward(self, x: torch.Tensor, output_size=None) -> torch.Tensor:
         g = self.groups
         c_in, per_group = self.weight.shape[:2]
         # Column block j holds weight[:, j mod per_group]; the mask keeps only each row's own group.

@@ -5,15 +5,14 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import GRAFFITI, SEKD_WEIGHTS
+from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.bench import metrics
 from sekd_sfm.bench.datasets import find_sequences
 from sekd_sfm.bench.homography import HomographyConfig, run_homography_benchmark
 from sekd_sfm.bench.methods import Method, parse_method
-from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-
-from conftest import GRAFFITI, SEKD_WEIGHTS
 
 
 def test_identity_homography_has_zero_corner_error():

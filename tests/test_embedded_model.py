@@ -5,13 +5,12 @@ from pathlib import Path
 import h5py
 import pytest
 from click.testing import CliRunner
-
+from conftest import GRAFFITI, ROOT
 from sekd_sfm.cli.main import sekd
+
 from sekd_sfm.errors import SekdError
 from sekd_sfm.train import ship
 from sekd_sfm.weights import EMBEDDED_MODEL, file_sha256, load_model
-
-from conftest import GRAFFITI, ROOT
 
 RUN = ROOT / "pipelines/train_default/run"
 

@@ -10,15 +10,14 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import SEKD_WEIGHTS
+from sekd_sfm.cli.main import sekd
 
 from sekd_sfm import featurefile as ff
-from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.extract import extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.inference import SEKDConfig
-
-from conftest import SEKD_WEIGHTS
 
 
 def textured(seed: int, shape=(120, 160)) -> np.ndarray:

@@ -3,12 +3,18 @@ import cv2
 import numpy as np
 import pytest
 import torch
-
-from sekd_sfm.inference import (SEKDConfig, SEKDExtractor, max_filter, nms_keypoints, pyramid, refine_subpixel,
-                                sample_descriptors)
-from sekd_sfm.runtime import cpu_has_fast_bf16
-
 from conftest import GRAFFITI
+
+from sekd_sfm.inference import (
+    SEKDConfig,
+    SEKDExtractor,
+    max_filter,
+    nms_keypoints,
+    pyramid,
+    refine_subpixel,
+    sample_descriptors,
+)
+from sekd_sfm.runtime import cpu_has_fast_bf16
 
 
 def test_nms_keeps_local_maxima_above_threshold_by_score():
@@ -24,7 +30,7 @@ def test_nms_keeps_local_maxima_above_threshold_by_score():
 
 def test_nms_top_k_and_zero_radius():
     prob = torch.tensor([[0.5, 0.6, 0.7, 0.8]])
-    xy, scores = nms_keypoints(prob, radius=0, threshold=0.0, max_keypoints=2)
+    xy, _ = nms_keypoints(prob, radius=0, threshold=0.0, max_keypoints=2)
     assert xy.tolist() == [[3, 0], [2, 0]]
 
 
@@ -85,7 +91,7 @@ def test_reproduces_authors_keypoints_on_v_graffiti(shared, authors_net):
 @pytest.mark.skipif(not cpu_has_fast_bf16(), reason="no native bf16 on this CPU")
 def test_bf16_fast_path_agrees_with_fp32(shared, authors_net):
     image = cv2.imread(str(GRAFFITI / "1.ppm"), cv2.IMREAD_GRAYSCALE)
-    config = dict(max_keypoints=500, threshold=0.4, device="cpu")
+    config = {"max_keypoints": 500, "threshold": 0.4, "device": "cpu"}
     fp32 = SEKDExtractor(authors_net, SEKDConfig(precision="fp32", **config)).extract(image)
     bf16 = SEKDExtractor(authors_net, SEKDConfig(precision="bf16", **config)).extract(image)
     kp = np.concatenate([fp32["keypoints"], fp32["scores"][:, None]], 1)

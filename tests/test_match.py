@@ -6,13 +6,22 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from sekd_sfm.cli.main import sekd
 
 from sekd_sfm import featurefile as ff
 from sekd_sfm import matchfile as mf
-from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.match import (MatchConfig, augment_cols, augment_rows, match_batch, match_descriptors, match_features,
-                            prepare_descriptors, stack_cols, stack_rows)
+from sekd_sfm.match import (
+    MatchConfig,
+    augment_cols,
+    augment_rows,
+    match_batch,
+    match_descriptors,
+    match_features,
+    prepare_descriptors,
+    stack_cols,
+    stack_rows,
+)
 from sekd_sfm.pairs import write_pairs
 
 # Float case. Rows of A, columns of B (2-D points as descriptors), distances worked out by hand:
@@ -138,7 +147,7 @@ def write_features(path, images: dict, feature="sift", dim=None, dtype=None, dec
 @pytest.fixture
 def small(tmp_path):
     """Features of three images (two names with spaces / folders) and all pairs."""
-    kp = lambda n: np.zeros((n, 2), np.float32)  # noqa: E731
+    kp = lambda n: np.zeros((n, 2), np.float32)
     images = {"a.jpg": (kp(5), A), "dir/b c.jpg": (kp(5), B), "z.jpg": (kp(0), A[:0])}
     features = write_features(tmp_path / "features.h5", images, feature="kaze")
     pairs = write_pairs([("a.jpg", "dir/b c.jpg"), ("z.jpg", "a.jpg"), ("dir/b c.jpg", "z.jpg")], tmp_path / "p.txt")
@@ -175,7 +184,7 @@ def test_names_that_hloc_would_collide_stay_apart(tmp_path):
 
 
 def test_binary_features_use_hamming(tmp_path):
-    kp = lambda n: np.zeros((n, 2), np.float32)  # noqa: E731
+    kp = lambda n: np.zeros((n, 2), np.float32)
     features = write_features(tmp_path / "f.h5", {"x.png": (kp(3), X), "y.png": (kp(4), Y)}, feature="orb")
     pairs = write_pairs([("x.png", "y.png")], tmp_path / "p.txt")
     out = match_features(features, pairs, tmp_path / "m.h5", MatchConfig(mode="both", ratio=0.8), progress=False)

@@ -2,13 +2,11 @@
 import numpy as np
 import pytest
 import torch
+from conftest import SEKD_WEIGHTS
 
 from sekd_sfm.inference import FastSEKD
-from sekd_sfm.network import use_fast_deconv
-from sekd_sfm.network import SEKDNet, count_parameters
+from sekd_sfm.network import SEKDNet, count_parameters, use_fast_deconv
 from sekd_sfm.weights import load_model
-
-from conftest import SEKD_WEIGHTS
 
 
 def test_parameter_count():

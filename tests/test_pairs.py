@@ -2,12 +2,20 @@
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from sekd_sfm.cli.main import sekd
 
 from sekd_sfm import featurefile as ff
-from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.pairs import (PairsConfig, exhaustive_pairs, make_pairs, natural_key, read_pairs, sequential_pairs,
-                            unique_pairs, write_pairs)
+from sekd_sfm.pairs import (
+    PairsConfig,
+    exhaustive_pairs,
+    make_pairs,
+    natural_key,
+    read_pairs,
+    sequential_pairs,
+    unique_pairs,
+    write_pairs,
+)
 
 
 def write_feature_file(path, names, feature="sift"):
@@ -60,8 +68,8 @@ def test_sequential_rejects_empty_window():
 
 def test_read_pairs_tabs_spaces_comments_crlf(tmp_path):
     path = tmp_path / "pairs.txt"
-    path.write_bytes("# a comment\r\nimg one.jpg\tsub dir/img two.jpg\r\n\n  \na.jpg   b.jpg\n"
-                     "b.jpg a.jpg\nsub dir/img two.jpg\timg one.jpg\n".encode())
+    path.write_bytes(b"# a comment\r\nimg one.jpg\tsub dir/img two.jpg\r\n\n  \na.jpg   b.jpg\n"
+                     b"b.jpg a.jpg\nsub dir/img two.jpg\timg one.jpg\n")
     assert read_pairs(path) == [("img one.jpg", "sub dir/img two.jpg"), ("a.jpg", "b.jpg")]
 
 

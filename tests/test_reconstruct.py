@@ -6,10 +6,10 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from sekd_sfm.cli.main import sekd
 
 from sekd_sfm import featurefile as ff
 from sekd_sfm.bench.strecha import rotation_angle_deg
-from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import Interrupted, SekdError
 from sekd_sfm.extract import describe_config
 from sekd_sfm.features import FeatureConfig, build_extractor
@@ -167,7 +167,7 @@ def test_synthetic_all_registered_with_exact_poses(synthetic):
 
 
 def test_synthetic_outputs_and_stats(synthetic):
-    views, _, out, _ = synthetic
+    _, _, out, _ = synthetic
     stats = json.loads((out / "stats.json").read_text())
     assert stats["status"] == "ok" and stats["failure"] is None
     assert stats["model"]["registered_images"] == 8 and stats["model"]["points3D"] > 200
@@ -191,7 +191,7 @@ def test_database_keypoints_use_colmap_pixel_convention(synthetic):
 
 
 def test_export_text_and_ply(synthetic, tmp_path):
-    _, _, out, model = synthetic
+    *_, model = synthetic
     runner = CliRunner()
     result = runner.invoke(sekd, ["-q", "export", str(model), "-o", str(tmp_path / "text")])
     assert result.exit_code == 0, result.output

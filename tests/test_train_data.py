@@ -6,10 +6,29 @@ import pytest
 import torch
 
 from sekd_sfm.errors import SekdError
-from sekd_sfm.train.config import (SCHEDULES, TrainConfig, coerce, parse_set, resolve_config, schedule_config)
-from sekd_sfm.train.data import (PairDataset, affine_grid, color_jitter, correspondences, invert_affine,
-                                 labels_forward, labels_inverse, make_pair, random_affine, rng_for, sample,
-                                 subset_indices, to_gray)
+from sekd_sfm.train.config import (
+    SCHEDULES,
+    TrainConfig,
+    coerce,
+    parse_set,
+    resolve_config,
+    schedule_config,
+)
+from sekd_sfm.train.data import (
+    PairDataset,
+    affine_grid,
+    color_jitter,
+    correspondences,
+    invert_affine,
+    labels_forward,
+    labels_inverse,
+    make_pair,
+    random_affine,
+    rng_for,
+    sample,
+    subset_indices,
+    to_gray,
+)
 
 IDENTITY = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 #: 30 degrees rotation, scales 1.2 / 0.9, a small translation (normalised units).

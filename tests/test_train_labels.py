@@ -8,9 +8,21 @@ import torch
 import torch.nn.functional as F
 
 from sekd_sfm.train.config import TrainConfig
-from sekd_sfm.train.labels import (Labels, average_detections, keep_with_floor, fused_reliability, label_one, random_keypoints,
-                                   reliability_scale, select_keypoints)
-from sekd_sfm.train.model import BlockDiagonalConvTranspose2d, new_network, use_fast_deconv
+from sekd_sfm.train.labels import (
+    Labels,
+    average_detections,
+    fused_reliability,
+    keep_with_floor,
+    label_one,
+    random_keypoints,
+    reliability_scale,
+    select_keypoints,
+)
+from sekd_sfm.train.model import (
+    BlockDiagonalConvTranspose2d,
+    new_network,
+    use_fast_deconv,
+)
 
 CFG = TrainConfig()
 

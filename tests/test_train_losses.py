@@ -4,9 +4,17 @@ import math
 import pytest
 import torch
 
-from sekd_sfm.train.losses import (focal_loss, hardest_negatives, pairwise_distances, preservation_mse,
-                                   repeatability_paper, repeatability_weighted, spatial_neighbours,
-                                   spread_out, triplet_loss)
+from sekd_sfm.train.losses import (
+    focal_loss,
+    hardest_negatives,
+    pairwise_distances,
+    preservation_mse,
+    repeatability_paper,
+    repeatability_weighted,
+    spatial_neighbours,
+    spread_out,
+    triplet_loss,
+)
 from sekd_sfm.train.steps import matched_keypoints, sample_upsampled
 
 # Anchors a_i and their matches p_i (unit vectors in 2-D):

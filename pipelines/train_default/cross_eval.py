@@ -16,7 +16,13 @@ from pathlib import Path
 import torch
 
 from sekd_sfm.inference import nms_keypoints, sample_descriptors
-from sekd_sfm.train.validate import find_sequences, load_sequence, mutual_matches, pair_scores, summarise
+from sekd_sfm.train.validate import (
+    find_sequences,
+    load_sequence,
+    mutual_matches,
+    pair_scores,
+    summarise,
+)
 from sekd_sfm.weights import load_model
 
 SETS = ["data/homography/hpatches/*", "data/homography/oxford/*"]

@@ -19,8 +19,8 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import featurefile as ff
-from ..match import match_descriptors
 from ..images import read_image, resized_to_original_matrix
+from ..match import match_descriptors
 from ..runtime import package_versions
 from . import metrics
 from .datasets import Sequence, find_sequences
@@ -84,7 +84,7 @@ def evaluate_pair(f0: dict, f1: dict, homography: np.ndarray, binary: bool) -> d
         "corner_error": metrics.corner_error(estimated, homography, width, height),
         "mma": metrics.match_accuracy(kp0, kp1, matches, homography).tolist(),
         "repeatability": metrics.repeatability(kp0, kp1, homography, tuple(f0["image_size"]), tuple(f1["image_size"])),
-        "matches": int(len(matches)),
+        "matches": len(matches),
     }
 
 

@@ -88,7 +88,7 @@ def evaluate_scene(features: Path, scene: PoseScene, feature: str, binary: bool,
         estimate = estimate_relative_pose(kp0.astype(np.float64), kp1.astype(np.float64),
                                           scene.cameras[a][0], scene.cameras[b][0], config)
         rot, trans = pose_errors(estimate, scene.cameras[a], scene.cameras[b])
-        results.append({"scene": scene.name, "pair": [a, b], "matches": int(len(matches)),
+        results.append({"scene": scene.name, "pair": [a, b], "matches": len(matches),
                         "inliers": estimate[2] if estimate else 0, "rotation_deg": rot, "translation_deg": trans,
                         "pose_deg": max(rot, trans)})
     return results

@@ -2,9 +2,8 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
-
 
 from .metrics import THRESHOLDS
 

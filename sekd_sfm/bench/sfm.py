@@ -21,9 +21,9 @@ import numpy as np
 
 from ..errors import SekdError
 from ..extract import extract_features
+from ..featurefile import read_attrs, read_features
 from ..features import FeatureConfig
 from ..match import MatchConfig, describe_config, match_descriptors
-from ..featurefile import read_attrs, read_features
 from ..runtime import package_versions, shared_dir
 from ..sfm.colmap import colmap_log, require_pycolmap
 from ..sfm.mapping import mapper_options, run_mapper

@@ -14,8 +14,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..inference import SEKDConfig, SEKDExtractor, nms_keypoints, sample_descriptors
 from ..images import list_images, read_image
+from ..inference import SEKDConfig, SEKDExtractor, nms_keypoints, sample_descriptors
 from ..network import SEKDNet
 from ..runtime import package_versions, set_num_threads
 

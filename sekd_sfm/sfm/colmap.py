@@ -127,7 +127,7 @@ def set_options(options, assignments: list[str], what: str = "--mapper"):
 def option_names(options, prefix: str = "") -> list[str]:
     """Dotted names of all settable fields of a pycolmap options object."""
     names = []
-    for name, value in options.todict().items():
+    for name in options.todict():
         child = getattr(options, name)
         names += option_names(child, f"{prefix}{name}.") if hasattr(child, "todict") else [prefix + name]
     return names

@@ -25,10 +25,30 @@ from ..match import MatchConfig, match_features
 from ..pairs import PairsConfig, make_pairs, read_pairs
 from ..runtime import package_versions
 from .colmap import colmap_log, require_pycolmap
-from .database import CameraConfig, create_database, parse_camera_params, two_view_options, verify_matches
-from .mapping import mapper_options, model_stats, registered_names, run_mapper, write_models
-from .report import (ReconstructionError, check_enough_matches, explain_no_model, explain_submodels,
-                     match_statistics, summarize_matches, unregistered_report, write_json)
+from .database import (
+    CameraConfig,
+    create_database,
+    parse_camera_params,
+    two_view_options,
+    verify_matches,
+)
+from .mapping import (
+    mapper_options,
+    model_stats,
+    registered_names,
+    run_mapper,
+    write_models,
+)
+from .report import (
+    ReconstructionError,
+    check_enough_matches,
+    explain_no_model,
+    explain_submodels,
+    match_statistics,
+    summarize_matches,
+    unregistered_report,
+    write_json,
+)
 
 logger = logging.getLogger("sekd")
 

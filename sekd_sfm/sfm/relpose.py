@@ -93,7 +93,7 @@ def relative_pose(image0: str | Path, image1: str | Path, config: RelposeConfig 
         raise SekdError(f"RANSAC found no essential matrix: {counts}; the images may not overlap")
     return {"image0": str(paths[0]), "image1": str(paths[1]), **_pose(result),
             "num_keypoints": [len(f0["keypoints"]), len(f1["keypoints"])],
-            "num_matches": int(len(p0)), "num_inliers": int(result["num_inliers"]),
+            "num_matches": len(p0), "num_inliers": int(result["num_inliers"]),
             "cameras": [{"model": c.model_name, "params": np.asarray(c.params).tolist(), "focal_from": s}
                         for c, s in ((cam0, source0), (cam1, source1))]}
 

@@ -25,7 +25,8 @@ from pathlib import Path
 import torch
 
 from ..errors import SekdError
-from .config import RUNTIME_FIELDS, TrainConfig, apply, load_run_config, validate as validate_config
+from .config import RUNTIME_FIELDS, TrainConfig, apply, load_run_config
+from .config import validate as validate_config
 from .data import TrainImages, subset_indices
 from .distributed import Context, barrier, setup
 from .labels import Labels, label_images

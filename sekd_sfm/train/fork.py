@@ -16,7 +16,8 @@ import shutil
 from pathlib import Path
 
 from ..errors import SekdError
-from .config import RUNTIME_FIELDS, TrainConfig, apply, differing_fields, validate as validate_config
+from .config import RUNTIME_FIELDS, TrainConfig, apply, differing_fields
+from .config import validate as validate_config
 from .evolve import RunFolder, Task, evolve_tasks
 from .report import rank_validation, write_atomic
 

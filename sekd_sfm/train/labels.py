@@ -18,7 +18,15 @@ from tqdm import tqdm
 
 from ..inference import nms_keypoints
 from .config import TrainConfig
-from .data import TrainImages, affine_grid, invert_affine, make_view, random_affine, rng_for, sample
+from .data import (
+    TrainImages,
+    affine_grid,
+    invert_affine,
+    make_view,
+    random_affine,
+    rng_for,
+    sample,
+)
 from .distributed import Context, gather_objects, shard
 
 logger = logging.getLogger("sekd.train")
@@ -64,7 +72,7 @@ class Labels:
         os.replace(tmp, path)
 
     @classmethod
-    def load(cls, path: Path) -> "Labels":
+    def load(cls, path: Path) -> Labels:
         with np.load(path) as z:
             labels = cls(str(z["kind"]), int(z["round"]))
             bounds = np.concatenate([[0], np.cumsum(z["counts"])])

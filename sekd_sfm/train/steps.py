@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict
+from collections.abc import Callable
 from functools import partial
-from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -22,8 +22,15 @@ from .config import TrainConfig
 from .data import PairDataset, TrainImages, rng_for
 from .distributed import Context, check_in_sync, shard, sum_across, sync_buffers, wrap
 from .labels import Labels
-from .losses import (focal_loss, preservation_mse, repeatability_paper, repeatability_weighted,
-                     spatial_neighbours, spread_out, triplet_loss)
+from .losses import (
+    focal_loss,
+    preservation_mse,
+    repeatability_paper,
+    repeatability_weighted,
+    spatial_neighbours,
+    spread_out,
+    triplet_loss,
+)
 from .model import frozen_copy
 
 logger = logging.getLogger("sekd.train")
