@@ -224,6 +224,7 @@ def test_fork_equals_a_run_started_with_the_changed_setting(images8, tmp_path):
     fork_run(tmp_path / "source", tmp_path / "fork", {"spread_weight": 1.0})
     state = json.loads((tmp_path / "fork" / "state.json").read_text())
     assert state["done"] == ["r0_c", "r0_d", "r1_a"] and state["forked_from"]["changed"] == ["spread_weight"]
+    assert state["forked_from"]["run"] == "../source"  # relative: the record holds in another clone
     assert "forked from" in (tmp_path / "fork" / "train.log").read_text().splitlines()[-1]
     forked = evolve(tmp_path / "fork", None, resume=True)
     a = torch.load(reference.last, weights_only=True)["state_dict"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import shutil
 from pathlib import Path
@@ -62,12 +63,17 @@ def fork_run(source: Path, out: Path, overrides: dict) -> Path:
     best = _best(history, config)
     _copy_outputs(src, dst, reused, best)
     state = {"tasks": [dataclasses.asdict(t) for t in tasks], "done": ids, "best": best,
-             "forked_from": {"run": str(Path(source).resolve()), "after": ids[-1], "changed": changed}}
+             "forked_from": {"run": _relative(source, dst.root), "after": ids[-1], "changed": changed}}
     write_atomic(dst.root / "config.yaml", config.to_yaml())
     write_atomic(dst.root / "history.json", json.dumps(history, indent=1))
     write_atomic(dst.root / "train.log", _log_upto(src.root / "train.log", reused, source, changed, config))
     dst.save_state(state)  # last: the folder is a run only once everything else is in place
     return dst.root
+
+
+def _relative(source: Path, fork: Path) -> str:
+    """``source`` relative to the fork's folder, so the record holds in any clone of the repository."""
+    return Path(os.path.relpath(Path(source).resolve(), Path(fork).resolve())).as_posix()
 
 
 def _copy_outputs(src: RunFolder, dst: RunFolder, reused: list[Task], best: dict | None) -> None:
