@@ -95,6 +95,7 @@ class BlockDiagonalConvTranspose2d(nn.ConvTranspose2d):
     convolutions on the CPU (3x at the decoder's last layer).
     """
 
+    # output_size is accepted for nn.ConvTranspose2d's signature only: the output size is fixed.
     def forward(self, x: torch.Tensor, output_size=None) -> torch.Tensor:
         g = self.groups
         c_in, per_group = self.weight.shape[:2]

@@ -64,7 +64,7 @@ def load_model(weights: str | Path | None = None) -> tuple[SEKDNet, ModelInfo]:
     path = resolve_weights_path(weights)
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
+    except Exception as exc:  # torch raises many types for bad files
         raise SekdError(f"{path}: cannot read checkpoint ({type(exc).__name__}: {exc})".splitlines()[0]) from exc
     net = SEKDNet()
     try:
