@@ -1,4 +1,4 @@
-"""``sekd bench``: speed now; the paper's evaluations join this group."""
+"""``sekd bench``: speed, the paper's evaluations (homography, pose, SfM), summaries and plots."""
 from __future__ import annotations
 
 import json
@@ -23,10 +23,10 @@ def bench() -> None:
               help="Folder of images (default: $SEKD_SHARED/data/train/coco).")
 @click.option("--count", type=click.IntRange(min=1), default=8, show_default=True, help="Images per method.")
 @click.option("--repeats", type=click.IntRange(min=1), default=2, show_default=True, help="Timed passes over them.")
-@click.option("--height", type=int, default=480, show_default=True)
-@click.option("--width", type=int, default=640, show_default=True)
-@click.option("--max-keypoints", type=int, default=2000, show_default=True)
-@click.option("--num-threads", type=int, default=None, help="CPU threads (default: all cores).")
+@click.option("--height", type=click.IntRange(min=16), default=480, show_default=True)
+@click.option("--width", type=click.IntRange(min=16), default=640, show_default=True)
+@click.option("--max-keypoints", type=click.IntRange(min=1), default=2000, show_default=True)
+@click.option("--num-threads", type=click.IntRange(min=1), default=None, help="CPU threads (default: all cores).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the results as JSON.")
 @weights_option
 def speed(images, count, repeats, height, width, max_keypoints, num_threads, output, weights) -> None:
@@ -56,11 +56,12 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
 @click.argument("roots", nargs=-1, type=click.Path(file_okay=False, path_type=Path))
 @click.option("-m", "--method", "methods", multiple=True,
               help="[LABEL=]FEATURE[:WEIGHTS], repeatable: sift, orb, akaze, brisk, kaze, disk, aliked, xfeat, "
-                   "sekd (embedded), sekd:PATH. Default: every classic and peer, plus sekd:--weights if given.")
+                   "sekd (the default embedded model), sekd:own, sekd:authors, sekd:PATH. Default: every classic and "
+                   "peer, plus sekd:--weights if given.")
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=Path("bench-homography"),
               show_default=True, help="Folder for results.json, results.md, plots and the prediction cache.")
-@click.option("--resize-max", type=int, default=640, show_default=True, help="Long side limit in px; 0 = full resolution.")
-@click.option("--max-keypoints", type=int, default=500, show_default=True)
+@click.option("--resize-max", type=click.IntRange(min=0), default=640, show_default=True, help="Long side limit in px; 0 = full resolution.")
+@click.option("--max-keypoints", type=click.IntRange(min=1), default=500, show_default=True)
 @click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]), default="fp32", show_default=True,
               help="SEKD network precision (fp32: the model's own numbers; auto: the fast path of `extract`).")
 @weights_option
@@ -92,8 +93,8 @@ DEFAULT_METHODS = ["sift", "orb", "akaze", "brisk", "kaze", "disk", "aliked", "x
 @click.option("-m", "--method", "methods", multiple=True, help="As for `bench homography`. Default: every classic and peer.")
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=Path("bench-pose"),
               show_default=True, help="Folder for results.json, results.md, pose_accuracy.png and the feature cache.")
-@click.option("--max-keypoints", type=int, default=2000, show_default=True)
-@click.option("--resize-max", type=int, default=1600, show_default=True, help="Extraction size limit; 0 = full.")
+@click.option("--max-keypoints", type=click.IntRange(min=1), default=2000, show_default=True)
+@click.option("--resize-max", type=click.IntRange(min=0), default=1600, show_default=True, help="Extraction size limit; 0 = full.")
 @click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]), default="fp32", show_default=True,
               help="SEKD network precision (fp32: the model's own numbers; auto: the fast path of `extract`).")
 @weights_option
@@ -145,7 +146,29 @@ def summary(homography_results, pose_results, sfm_results, output, highlight) ->
     click.echo(f"summary: {path} and {path.with_suffix('.png')}")
 
 
+@bench.command()
+@click.argument("results_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
+def plots(results_dir) -> None:
+    """Redraw every benchmark plot under RESULTS_DIR from the results.json files there.
+
+    Figures that combine several runs (a later run's rows replace earlier ones of the same
+    method) are listed in RESULTS_DIR/figures.json; see docs/benchmarks.md.
+
+    \b
+    Example:
+      sekd bench plots docs/results
+    """
+    from sekd_sfm.bench.report import regenerate_plots
+
+    for path in regenerate_plots(results_dir):
+        click.echo(path)
+
+
 from . import bench_sfm
 
 bench.add_command(bench_sfm.sfm)
 bench.add_command(bench_sfm.ratios)
+
+from . import bench_scale
+
+bench.add_command(bench_scale.scale)

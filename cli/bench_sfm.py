@@ -7,9 +7,10 @@ import click
 
 from sekd_sfm.features import FEATURE_TYPES
 
-from .match import match_config, match_options
+from .match import match_options
 from .options import feature_options, runtime_options, weights_option
-from .reconstruct import camera_options, feature_config, mapper_option, seed_option
+from .presets import configs_from_context
+from .reconstruct import camera_options, mapper_option, mapper_type_option, seed_option
 
 
 @click.command()
@@ -21,6 +22,7 @@ from .reconstruct import camera_options, feature_config, mapper_option, seed_opt
 @runtime_options
 @match_options
 @camera_options
+@mapper_type_option
 @mapper_option
 @seed_option
 @click.option("--no-baseline", is_flag=True, help="Skip pycolmap's SIFT pipeline.")
@@ -28,7 +30,7 @@ from .reconstruct import camera_options, feature_config, mapper_option, seed_opt
               help="Run our pipeline once per method ([LABEL=]FEATURE[:WEIGHTS], as `bench homography`), "
                    "instead of once with --feature/--weights.")
 def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel, weights,
-        num_threads, device, precision, match_mode, ratio, rootsift, camera_model, camera_mode, camera_params, mapper,
+        num_threads, device, precision, match_mode, ratio, rootsift, camera_model, camera_mode, camera_params, mapper_type, mapper,
         seed, no_baseline, methods) -> None:
     """Reconstruct SCENE with our pipeline and with pycolmap's SIFT; compare with ground-truth cameras.
 
@@ -51,12 +53,12 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
     from sekd_sfm.sfm.database import CameraConfig
     from sekd_sfm.sfm.reconstruct import ReconstructConfig
 
+    features_config, matching = configs_from_context()
+    features_config.resize_max = features_config.resize_max or 1600
     config = ReconstructConfig(
-        features=feature_config(feature, max_keypoints, threshold, nms_radius, resize_max or 1600, multi_scale,
-                                subpixel, weights, device, precision),
-        pairs=PairsConfig(mode="exhaustive"), matching=match_config(match_mode, ratio, rootsift, device),
-        camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params), mapper=list(mapper),
-        seed=seed)
+        features=features_config, pairs=PairsConfig(mode="exhaustive"), matching=matching,
+        camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params), mapper_type=mapper_type,
+        mapper=list(mapper), seed=seed)
     report = benchmark_sfm(scene, output or Path(f"bench-sfm-{Path(scene).name}"), config, baseline=not no_baseline,
                            num_threads=num_threads, methods=available([parse_method(m) for m in methods]))
     from sekd_sfm.bench.sfm import sfm_markdown
@@ -75,7 +77,7 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
 @click.option("--max-gap", type=click.IntRange(min=1), default=4, show_default=True,
               help="Pairs (i, i+1) .. (i, i+GAP) of the scene's images in name order.")
 @weights_option
-@click.option("--num-threads", type=int, default=None, help="CPU threads (default: all cores).")
+@click.option("--num-threads", type=click.IntRange(min=1), default=None, help="CPU threads (default: all cores).")
 def ratios(scene, output, feature_list, max_keypoints, resize_max, max_gap, weights, num_threads) -> None:
     """Measure the ratio-test threshold per feature type on SCENE's ground truth (the matcher's defaults).
 
@@ -90,11 +92,8 @@ def ratios(scene, output, feature_list, max_keypoints, resize_max, max_gap, weig
       sekd bench ratios fountain-P11 --weights ../shared/weights/sekd/sekd.pth
     """
     from sekd_sfm.bench.sfm import benchmark_ratios, ratios_markdown
-    from sekd_sfm.features import FeatureConfig
-    from sekd_sfm.inference import SEKDConfig
 
-    base = FeatureConfig(max_keypoints=max_keypoints, resize_max=resize_max, weights=weights,
-                         sekd=SEKDConfig(max_keypoints=max_keypoints))
+    base, _ = configs_from_context()
     features = [f.strip() for f in feature_list.split(",") if f.strip()]
     unknown = sorted(set(features) - set(FEATURE_TYPES))
     if unknown:

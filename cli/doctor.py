@@ -1,11 +1,14 @@
 """``sekd doctor``: what this installation and machine can do."""
 from __future__ import annotations
 
+import os
 import platform
 
 import click
 import torch
 
+from sekd_sfm.failures import DEBUG_VARIABLE, debug_enabled
+from sekd_sfm.images import DEFAULT_MAX_PIXELS
 from sekd_sfm.runtime import cpu_flags, cpu_has_fast_bf16, package_versions
 from sekd_sfm.weights import EMBEDDED_MODEL, file_sha256
 
@@ -35,3 +38,15 @@ def doctor() -> None:
     click.echo(f"{'embedded model':<18}{model}")
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none (CPU only)"
     click.echo(f"{'gpu':<18}{gpu}")
+    ram = _physical_memory()
+    click.echo(f"{'memory':<18}{ram / 2**30:.1f} GB" if ram else f"{'memory':<18}unknown")
+    click.echo(f"{'pixel cap':<18}{DEFAULT_MAX_PIXELS / 1e6:g} MP per image (extract/reconstruct --max-pixels)")
+    state = "on: failures show the traceback" if debug_enabled() else "off: failures print one Error: line"
+    click.echo(f"{'debug':<18}{DEBUG_VARIABLE}={os.environ.get(DEBUG_VARIABLE, '')!s} ({state})")
+
+
+def _physical_memory() -> int | None:
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return None

@@ -5,25 +5,36 @@ from pathlib import Path
 
 import click
 
+from sekd_sfm.confs import output_names
 from sekd_sfm.extract import extract_features
-from sekd_sfm.features import FeatureConfig
-from sekd_sfm.inference import SEKDConfig
 
-from .options import feature_options, runtime_options, weights_option
+from .options import (
+    executor_options,
+    feature_options,
+    max_pixels_option,
+    runtime_options,
+    weights_option,
+)
+from .presets import conf_option, configs_from_context, current_conf
 
 
 @click.command()
 @click.argument("images", type=click.Path(path_type=Path))
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Feature file to write. Default: IMAGES/../features-FEATURE.h5 beside the image folder.")
+              help="Feature file to write. Default: IMAGES/../features-FEATURE.h5 beside the image folder "
+                   "(feats-CONF.h5 with --conf).")
+@conf_option
 @feature_options
+@max_pixels_option
 @weights_option
 @runtime_options
+@executor_options
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file instead of resuming it.")
 @click.option("--strict", is_flag=True, help="Stop at the first unreadable image instead of skipping it.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def extract(images: Path, output: Path | None, feature, max_keypoints, threshold, nms_radius, resize_max,
-            multi_scale, subpixel, weights, num_threads, device, precision, overwrite, strict, no_progress) -> None:
+            multi_scale, subpixel, max_pixels, weights, num_threads, device, precision, overwrite, strict,
+            no_progress, executor, ray_options) -> None:
     """Detect and describe keypoints of every image below IMAGES into one HDF5 file.
 
     \b
@@ -36,13 +47,13 @@ def extract(images: Path, output: Path | None, feature, max_keypoints, threshold
     Examples:
       sekd extract photos/ -o out/features.h5 --weights sekd.pth
       sekd extract photos/ -o out/sift.h5 --feature sift --max-keypoints 4000
+      sekd extract photos/ --conf sekd-n4000-r1600           # preset; writes feats-sekd-n4000-r1600.h5
+      sekd extract /shared/photos/ -o /shared/out/features.h5 --executor ray --ray-address head:6379
     """
+    config, _ = configs_from_context()
     if output is None:
-        output = images.parent / f"features-{feature}.h5"
-    sekd = SEKDConfig(max_keypoints=max_keypoints, threshold=threshold, nms_radius=nms_radius, subpixel=subpixel,
-                      multi_scale=multi_scale, precision=precision, device=device)
-    config = FeatureConfig(feature=feature, max_keypoints=max_keypoints, resize_max=resize_max, sekd=sekd,
-                           weights=weights)
+        conf = current_conf()
+        output = images.parent / (output_names(conf)[0] if conf else f"features-{config.feature}.h5")
     path = extract_features(images, output, config, overwrite=overwrite, strict=strict, num_threads=num_threads,
-                            progress=not no_progress)
+                            progress=not no_progress, executor=executor, ray_options=ray_options)
     click.echo(str(path))

@@ -6,23 +6,21 @@ from pathlib import Path
 
 import click
 
+from sekd_sfm.confs import output_names
 from sekd_sfm.errors import SekdError
-from sekd_sfm.features import FeatureConfig
-from sekd_sfm.inference import SEKDConfig
 
-from .match import match_config, match_options, pairs_config, pairs_options
-from .options import feature_options, runtime_options, weights_option
+from .adapt import adapt_in_line, adapt_option
+from .match import match_options, pairs_config, pairs_options
+from .options import (
+    executor_options,
+    feature_options,
+    max_pixels_option,
+    runtime_options,
+    weights_option,
+)
+from .presets import conf_option, configs_from_context, current_conf
 
 CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
-
-
-def feature_config(feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel, weights,
-                   device, precision) -> FeatureConfig:
-    """The FeatureConfig of the shared feature options (as `sekd extract` builds it)."""
-    sekd = SEKDConfig(max_keypoints=max_keypoints, threshold=threshold, nms_radius=nms_radius, subpixel=subpixel,
-                      multi_scale=multi_scale, precision=precision, device=device)
-    return FeatureConfig(feature=feature, max_keypoints=max_keypoints, resize_max=resize_max, sekd=sekd,
-                         weights=weights)
 
 
 def camera_options(f):
@@ -48,7 +46,12 @@ def _print_option_help(ctx: click.Context, param: click.Parameter, values) -> tu
     from sekd_sfm.sfm.colmap import option_names, require_pycolmap
 
     pycolmap = require_pycolmap()
-    options = pycolmap.IncrementalPipelineOptions() if param.name == "mapper" else pycolmap.TwoViewGeometryOptions()
+    if param.name == "mapper":  # the options of the chosen mapper (--mapper-type is eager: already parsed)
+        from sekd_sfm.sfm.mapping import default_options
+
+        options = default_options(ctx.params.get("mapper_type") or "incremental")
+    else:
+        options = pycolmap.TwoViewGeometryOptions()
     for name in option_names(options):
         value = options
         for part in name.split("."):
@@ -59,9 +62,17 @@ def _print_option_help(ctx: click.Context, param: click.Parameter, values) -> tu
 
 mapper_option = click.option(
     "--mapper", multiple=True, metavar="KEY=VALUE", callback=_print_option_help,
-    help="Set an option of pycolmap's IncrementalPipelineOptions, e.g. mapper.init_min_tri_angle=8 "
-         "(repeatable; `--mapper help` lists them). The mapper runs on one thread, the only way COLMAP "
-         "repeats a model for a --seed; num_threads=-1 uses all cores (faster on large scenes).")
+    help="Set an option of the chosen mapper's pycolmap options (IncrementalPipelineOptions, "
+         "GlobalPipelineOptions or HierarchicalPipelineOptions), e.g. mapper.init_min_tri_angle=8 "
+         "(repeatable; `--mapper-type global --mapper help` lists them). An option the chosen mapper lacks "
+         "is an error before any work. The mapper runs on one thread, the only way COLMAP repeats a model "
+         "for a --seed; num_threads=-1 uses all cores (faster on large scenes).")
+mapper_type_option = click.option(
+    "--mapper-type", type=click.Choice(("incremental", "global", "hierarchical")), default="incremental",
+    show_default=True, is_eager=True,  # eager: `--mapper help` lists the options of this type
+    help="incremental: COLMAP's mapper, one image at a time; global: GLOMAP (rotation averaging + global "
+         "positioning, all cameras at once); hierarchical: clusters mapped incrementally, then merged "
+         "(for thousands of photos).")
 seed_option = click.option("--seed", type=int, default=0, show_default=True,
                            help="Random seed of RANSAC and the mapper.")
 
@@ -70,56 +81,95 @@ seed_option = click.option("--seed", type=int, default=0, show_default=True,
 @click.argument("images", type=click.Path(file_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output folder: features.h5, pairs.txt, matches.h5, database.db, model/, stats.json, colmap.log.")
+@conf_option
 @feature_options
+@max_pixels_option
 @weights_option
 @runtime_options
 @pairs_options
 @match_options
 @camera_options
+@mapper_type_option
 @mapper_option
 @click.option("--verification", multiple=True, metavar="KEY=VALUE", callback=_print_option_help,
               help="Set an option of pycolmap's TwoViewGeometryOptions, e.g. ransac.max_error=2 "
                    "(repeatable; `--verification help` lists them).")
 @seed_option
+@adapt_option
+@click.option("--features", "features_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Use this existing feature file (sekd's or hloc's) instead of extracting; read in place.")
+@click.option("--matches", "matches_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Use this existing match file instead of pairing and matching (needs --features); its pairs "
+                   "are those of --pairs-file when given, else all it holds.")
 @click.option("--overwrite", is_flag=True, help="Recompute features and matches instead of reusing them.")
 @click.option("--no-progress", is_flag=True, help="No progress bars.")
+@executor_options
 def reconstruct(images, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel,
-                weights, num_threads, device, precision, pairs_mode, pairs_file, window, loop_every, match_mode, ratio,
-                rootsift, camera_model, camera_mode, camera_params, mapper, verification, seed, overwrite,
-                no_progress) -> None:
-    """Reconstruct cameras and 3D points from the images below IMAGES (COLMAP incremental SfM).
+                max_pixels, weights, num_threads, device, precision, pairs_mode, pairs_file, window, loop_every, match_mode, ratio,
+                rootsift, camera_model, camera_mode, camera_params, mapper_type, mapper, verification, seed,
+                features_file, matches_file, overwrite, no_progress, executor, ray_options) -> None:
+    """Reconstruct cameras and 3D points from the images below IMAGES (COLMAP SfM through pycolmap).
 
     \b
     Runs extract, pairs and match when their outputs are missing in OUTPUT (reusing them
-    when present and made with the same settings), imports everything into a COLMAP
-    database, verifies the matches geometrically and maps. The largest model is written
-    to OUTPUT/model (COLMAP binary), statistics to OUTPUT/stats.json, COLMAP's log to
-    OUTPUT/colmap.log. If no model, or several sub-models, come out, the reason and the
-    match statistics behind it are printed, the database is kept and the exit code is 1.
+    when present and made with the same settings; --features/--matches use existing files
+    instead), imports everything into a COLMAP database, verifies the matches geometrically
+    and maps (--mapper-type). Images are reduced to 1600 px on the long side unless
+    --resize-max says otherwise. Photos of the same size, EXIF make, model and focal length
+    share a camera (--camera-mode auto). The largest model is written to OUTPUT/model
+    (COLMAP binary); if the photos split into several models, the others go to
+    OUTPUT/models/1, 2, ... and the split is explained. Statistics (with the photos in no
+    model and their match counts) go to OUTPUT/stats.json, COLMAP's log to OUTPUT/colmap.log.
+    If no model comes out, the reason and the match statistics behind it are printed, the
+    database is kept and the exit code is 1. Ctrl-C stops at once; rerun to continue.
 
     \b
     Examples:
-      sekd reconstruct photos/ -o out/ --weights sekd.pth --resize-max 1600
+      sekd reconstruct photos/ -o out/
+      sekd reconstruct photos/ -o out/ --conf sekd-fast           # a preset (`sekd confs` lists them)
+      sekd reconstruct photos/ -o out/ --mapper-type global
       sekd reconstruct photos/ -o out/ --feature sift --camera-mode single --mapper mapper.init_min_tri_angle=8
+      sekd reconstruct photos/ -o out/ --features hloc/feats.h5 --matches hloc/matches.h5 --pairs-file hloc/pairs.txt
     """
     from sekd_sfm.sfm.database import CameraConfig
-    from sekd_sfm.sfm.reconstruct import ReconstructConfig, ReconstructionError
+    from sekd_sfm.sfm.reconstruct import (
+        DEFAULT_RESIZE_MAX,
+        ReconstructConfig,
+        ReconstructionError,
+    )
     from sekd_sfm.sfm.reconstruct import reconstruct as run
     from sekd_sfm.sfm.report import format_summary
 
+    features_config, matching = configs_from_context()
+    features_config.resize_max = features_config.resize_max or DEFAULT_RESIZE_MAX
+    adapt_in_line(images, output, features_config, num_threads, not no_progress)  # --adapt: weights = adapted model
     config = ReconstructConfig(
-        features=feature_config(feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel,
-                                weights, device, precision),
+        features=features_config,
         pairs=pairs_config(pairs_mode, pairs_file, window, loop_every),
-        matching=match_config(match_mode, ratio, rootsift, device),
+        matching=matching,
         camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params),
-        mapper=list(mapper), verification=list(verification), seed=seed)
+        mapper_type=mapper_type, mapper=list(mapper), verification=list(verification), seed=seed)
+    if current_conf():  # hloc-style names, so the files of several presets coexist in OUTPUT
+        config.file_names = output_names(current_conf(), "pairs")
     try:
-        run(images, output, config, overwrite=overwrite, num_threads=num_threads, progress=not no_progress)
+        run(images, output, config, overwrite=overwrite, num_threads=num_threads, progress=not no_progress,
+            features=features_file, matches=matches_file, executor=executor, ray_options=ray_options)
     except ReconstructionError:
         _echo_summary(output, format_summary)
         raise
     _echo_summary(output, format_summary)
+
+
+def _set_resize_help(command: click.Command) -> None:
+    """Reconstruction's own default and help for the shared --resize-max option."""
+    for param in command.params:
+        if param.name == "resize_max":
+            param.help = ("Downscale images so the long side is at most N px (keypoints are mapped back to original "
+                          "pixels). Default 1600, as hloc: full-size photos cost far more to extract for little "
+                          "gain in pose accuracy; give e.g. 100000 for full size.")
+
+
+_set_resize_help(reconstruct)
 
 
 def _echo_summary(output: Path, format_summary) -> None:
@@ -131,6 +181,7 @@ def _echo_summary(output: Path, format_summary) -> None:
 @click.command()
 @click.argument("image0", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("image1", type=click.Path(dir_okay=False, path_type=Path))
+@conf_option
 @feature_options
 @weights_option
 @runtime_options
@@ -162,10 +213,10 @@ def relpose(image0, image1, feature, max_keypoints, threshold, nms_radius, resiz
     from sekd_sfm.sfm.relpose import RelposeConfig, relative_pose
 
     set_num_threads(num_threads)
+    features_config, matching = configs_from_context()
     config = RelposeConfig(
-        features=feature_config(feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel,
-                                weights, device, precision),
-        matching=match_config(match_mode, ratio, rootsift, device),
+        features=features_config,
+        matching=matching,
         camera_model=camera_model, camera_params=camera_params, max_error=max_error, seed=seed)
     text = json.dumps(relative_pose(image0, image1, config), indent=2)
     if output:
@@ -176,16 +227,22 @@ def relpose(image0, image1, feature, max_keypoints, threshold, nms_radius, resiz
 @click.command()
 @click.argument("model", type=click.Path(file_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
-              help="Folder for --format text, file (.ply) for --format ply.")
-@click.option("--format", "fmt", type=click.Choice(["text", "ply"]), default="text", show_default=True,
-              help="text: COLMAP text model (cameras.txt, images.txt, points3D.txt); ply: coloured point cloud.")
+              help="Folder for --format text, file (.ply) for --format ply, file (.html) for --format html.")
+@click.option("--format", "fmt", type=click.Choice(["text", "ply", "html"]), default="text", show_default=True,
+              help="text: COLMAP text model (cameras.txt, images.txt, points3D.txt); ply: coloured point cloud; "
+                   "html: interactive 3D page of the points and cameras (needs plotly: pip install \"sekd-sfm[viz]\").")
 def export(model: Path, output: Path, fmt: str) -> None:
-    """Export a COLMAP model as COLMAP text files or as a coloured PLY point cloud.
+    """Export a COLMAP model as COLMAP text files, a coloured PLY point cloud or an interactive 3D page.
+
+    \b
+    The HTML page shows the coloured 3D points and one frustum per registered image (hover
+    for its name); it embeds plotly.js, so it opens offline in any browser.
 
     \b
     Examples:
       sekd export out/model -o out/model_text
       sekd export out/model -o out/points.ply --format ply
+      sekd export out/model -o out/model.html --format html
     """
     from sekd_sfm.sfm.export import export_model
 

@@ -26,7 +26,7 @@ def run_options(f):
                      help="YAML file of config fields applied on top of the schedule."),
         click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
                      help="Override one config field (repeatable), e.g. --set lr=1e-4 --set no_affine=true."),
-        click.option("--seed", type=int, default=None, help="Random seed (init, data, shuffling)."),
+        click.option("--seed", type=click.IntRange(min=0), default=None, help="Random seed (init, data, shuffling)."),
         click.option("--device", type=click.Choice(DEVICES), default=None, help="auto uses a CUDA GPU when present."),
         click.option("--num-threads", type=click.IntRange(min=0), default=None,
                      help="CPU threads per process (0: the cores divided by the processes)."),
@@ -79,6 +79,9 @@ def evolve(images, out, schedule, config_file, settings, seed, device, num_threa
     runs (c), (d) only unless round0_random is set. After each update, (b) or (d), the
     model is validated on homography sequences; best.pth (the best of these) and last.pth
     load in `sekd extract --weights`.
+    Settings are checked before anything runs (types, ranges, one step's memory against this
+    machine's RAM); a run folder is used by one process at a time, and --resume refuses an
+    image folder that changed since the run started.
     Multi-process: torchrun --nproc_per_node N -m sekd_sfm.cli.main evolve ...
 
     \b

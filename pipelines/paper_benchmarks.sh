@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The paper's evaluations on the shared data, every method side by side.
 # Usage: pipelines/paper_benchmarks.sh [OUT_DIR]   (SEKD_SHARED defaults to ../shared;
-#        SKIP_SPEED=1 skips the speed benchmark). With the embedded model, it is `sekd_ours`.
+#        SKIP_SPEED=1 skips the speed benchmark). The embedded `own` model is `sekd_ours`.
 # Re-running is cheap: each benchmark caches its extracted features under OUT_DIR.
 set -euo pipefail
 OUT=${1:-bench-results}
@@ -10,8 +10,8 @@ W=$SHARED/weights/sekd
 SEKD_METHODS=(-m "sekd_authors=sekd:$W/sekd.pth"
               -m "sekd:$W/sekd_wo_affine.pth" -m "sekd:$W/sekd_wo_desc_dist.pth"
               -m "sekd:$W/sekd_wo_desc_rep.pth" -m "sekd:$W/sekd_wo_det_rep.pth")
-if python -c "from sekd_sfm.weights import EMBEDDED_MODEL as m; raise SystemExit(not m.is_file())"; then
-  SEKD_METHODS=(-m "sekd_ours=sekd" "${SEKD_METHODS[@]}")
+if python -c "from sekd_sfm.weights import EMBEDDED_MODELS as m; raise SystemExit(not m['own'].is_file())"; then
+  SEKD_METHODS=(-m "sekd_ours=sekd:own" "${SEKD_METHODS[@]}")  # the embedded `own` model (--model own)
 fi
 CLASSIC=(-m sift -m orb -m akaze -m brisk -m kaze)
 PEERS=(-m disk -m aliked -m xfeat)

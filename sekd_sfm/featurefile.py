@@ -13,57 +13,148 @@ Layout (one group per image, nested by the image key's folders, as hloc does)::
 
 ``descriptors`` is D x N like hloc's files, so hloc's matchers read it unchanged.
 
-Crash safety: the output file is only ever replaced whole (copy, append, fsync, rename).
-While a run goes on, each finished image is saved as its own small file in
-``<output>.parts/`` (also by rename); a merge moves them into the HDF5 file. A run killed
-at any moment leaves the last merged file, which opens, plus parts, which the next run
-merges: nothing is lost or duplicated.
+Writing: crash-safe at linear cost (details and measurements in docs/files.md).
+
+* While a run goes on, finished items (images here, pairs for the match file) go to the
+  *part store* ``<output>.parts/``: buffered in memory up to a bounded batch (at most
+  ``max_items`` items, ``max_bytes`` bytes or ``max_seconds`` seconds), then written as one
+  ``.npz`` *chunk* by write-to-temporary + rename. Every item is written once; thousands
+  of pairs make one chunk file, not thousands of files.
+* At the end of the run (also on Ctrl-C / SIGTERM) ``merge_parts`` writes the HDF5 file
+  once: copy of the previous file (a few KB on a first run), append of every chunk, fsync,
+  rename over ``<output>``. Bytes written for N items: parts + file, about 2x the data,
+  linear in N (copying the growing file at every checkpoint would be quadratic).
+* The output path always holds a complete HDF5 file: ``prepare_output`` creates it empty
+  (atomically) before any work, and it is only ever replaced whole by rename. ``kill -9``
+  at any moment leaves the last file plus complete chunks; the next run counts both as
+  done and merges the chunks: nothing is lost (an item still in the memory buffer is
+  recomputed) or duplicated (a killed merge leaves the chunks; a merge killed after its
+  rename is recognised by the ``merge_id`` attribute and its chunks are dropped).
+* One writer per output (``sekd_sfm.locking.exclusive_lock``, taken by
+  ``extract_features`` / ``match_features``); temporary names carry the writer's PID.
 """
 from __future__ import annotations
 
-import hashlib
+import contextlib
+import glob
 import json
+import logging
 import os
 import shutil
 import time
+import uuid
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from .errors import SekdError
+from .errors import Interrupted, SekdError
+from .locking import exclusive_lock
+
+logger = logging.getLogger("sekd")
 
 FORMAT = "sekd-features"
 FORMAT_VERSION = 1
 ARRAYS = ("keypoints", "descriptors", "scores", "image_size", "scales", "orientations")
 
 
+def temp_name(path: Path) -> Path:
+    """A temporary name beside ``path``, unique to this process: ``<name>.<pid>.tmp``."""
+    return path.with_name(f"{path.name}.{os.getpid()}.tmp")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, owned by someone else
+        return True
+    return True
+
+
+def remove_stale_temps(path: Path) -> None:
+    """Delete ``<name>.*.<pid>.tmp`` files and folders beside ``path`` left by killed writers (dead PID, or ours)."""
+    for tmp in path.parent.glob(f"{glob.escape(path.name)}.*tmp") if path.parent.is_dir() else []:
+        pid = tmp.name.rsplit(".", 2)[-2]
+        if tmp.name.endswith(".tmp") and pid.isdigit() and (int(pid) == os.getpid() or not _pid_alive(int(pid))):
+            shutil.rmtree(tmp, ignore_errors=True) if tmp.is_dir() else tmp.unlink(missing_ok=True)
+
+
 def _fsync_replace(tmp: Path, target: Path) -> None:
+    """Rename ``tmp`` over ``target`` with its data on disk first, and the rename itself made durable."""
     with open(tmp, "rb+") as f:
         os.fsync(f.fileno())
     os.replace(tmp, target)
+    with contextlib.suppress(OSError):  # not every file system lets a folder be fsynced
+        fd = os.open(target.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def create_empty(path: Path, attrs: dict) -> None:
-    """Write a feature file with attributes and no images, atomically."""
-    tmp = path.with_name(path.name + ".tmp")
-    with h5py.File(tmp, "w") as f:
-        for name, value in attrs.items():
-            f.attrs[name] = value
-    _fsync_replace(tmp, path)
+    """Write a feature (or match) file with attributes and no items, atomically (replaces ``path``)."""
+    tmp = temp_name(path)
+    try:
+        with h5py.File(tmp, "w") as f:
+            for name, value in attrs.items():
+                f.attrs[name] = value
+        _fsync_replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
-def read_attrs(path: Path, file_format: str = FORMAT) -> dict:
-    """The file attributes; SekdError if ``path`` is not a readable file of ``file_format``."""
+def read_attrs(path: Path, file_format: str = FORMAT, *, role: str = "input") -> dict:
+    """The file attributes; SekdError if ``path`` is not a readable file of ``file_format``.
+
+    ``role`` only words the error: "input" (a file to read; an hloc feature file, which has
+    no ``format`` attribute, is accepted, see ``hloc_attrs``) or "output" (a file to resume).
+    """
+    kind = {FORMAT: "feature"}.get(file_format, file_format.removeprefix("sekd-"))
+    fix = "delete it or choose another output" if role == "output" else {
+        FORMAT: "pass a feature file written by `sekd extract` or by hloc's extract_features",
+        "sekd-matches": "pass a match file written by `sekd match`"}.get(file_format, f"pass a {kind} file written by sekd")
     try:
         with h5py.File(path, "r") as f:
             attrs = dict(f.attrs)
+            if "format" not in attrs and file_format == FORMAT and role == "input":
+                return hloc_attrs(f, path)
     except OSError as exc:
-        raise SekdError(f"{path}: not a readable HDF5 file ({exc}); delete it or choose another output") from exc
+        raise SekdError(f"{path}: not a readable HDF5 file ({exc}); {fix}") from exc
     if attrs.get("format") != file_format:
-        kind = {FORMAT: "feature"}.get(file_format, file_format.removeprefix("sekd-"))
-        raise SekdError(f"{path}: not a sekd {kind} file (no format='{file_format}' attribute); choose another output")
+        raise SekdError(f"{path}: not a sekd {kind} file (no format='{file_format}' attribute); {fix}")
     return attrs
+
+
+def hloc_attrs(f: h5py.File, path: Path) -> dict:
+    """Attributes standing in for those of a sekd file, for a feature file written by hloc.
+
+    hloc stores no feature type: its descriptors (D x N, float32 or float16) are matched as
+    float vectors by L2 distance, read as float32. SekdError if no image has keypoints, or if
+    one lacks descriptors (detector-free matchers write keypoints only).
+    """
+    def visit(name: str, obj) -> str | None:
+        if isinstance(obj, h5py.Group) and "keypoints" in obj:
+            return name
+        return None
+
+    first = f.visititems(visit)
+    if first is None:
+        raise SekdError(f"{path}: not a feature file (no format='{FORMAT}' attribute and no image group with "
+                        "keypoints, as sekd or hloc write them); pass the file written by `sekd extract`")
+    if "descriptors" not in f[first]:
+        raise SekdError(f"{path}: image '{first}' has keypoints but no descriptors (a file of a detector-free "
+                        "matcher?); `sekd match` needs descriptors: extract them with `sekd extract`")
+    desc = f[first]["descriptors"]
+    if desc.dtype.kind != "f" or desc.ndim != 2:
+        raise SekdError(f"{path}: image '{first}' has {desc.dtype} descriptors of shape {desc.shape}; an hloc feature "
+                        "file must hold D x N float descriptors")
+    return {"format": "hloc", "feature_type": "unknown", "descriptor_dim": int(desc.shape[0]),
+            "descriptor_dtype": "float32", "config": json_attr({"feature": "unknown", "source": "hloc"}),
+            "model_sha256": ""}
 
 
 def list_keys(path: Path) -> list[str]:
@@ -80,7 +171,11 @@ def read_features(path: Path, key: str) -> dict[str, np.ndarray]:
         if key not in f:
             raise SekdError(f"{path}: has no features for image '{key}'")
         group = f[key]
+        # hloc may store float16 (its as_half option): everything downstream computes in float32.
         out = {name: group[name][()] for name in ARRAYS if name in group}
+        out = {name: a.astype(np.float32) if a.dtype == np.float16 else a for name, a in out.items()}
+        if "descriptors" not in out:
+            raise SekdError(f"{path}: image '{key}' has keypoints but no descriptors; extract them with `sekd extract`")
     out["descriptors"] = out["descriptors"].T
     return out
 
@@ -93,60 +188,234 @@ def _write_group(f: h5py.File, key: str, arrays: dict[str, np.ndarray]) -> None:
         if name in arrays:
             value = arrays[name].T if name == "descriptors" else arrays[name]
             group.create_dataset(name, data=value)
+    if "uncertainty" in arrays:  # hloc's triangulation scales its error thresholds by it (pixels)
+        group["keypoints"].attrs["uncertainty"] = float(arrays["uncertainty"])
+
+
+#: Attribute naming the last merge that wrote the file (see ``PartStore.recover``).
+MERGE_ID = "merge_id"
+#: A part store's marker: the merge id of a merge that is renaming its file into place.
+MERGING = "MERGING"
 
 
 class PartStore:
-    """Finished images of a run in progress, one ``.npz`` per image, written by rename."""
+    """Finished items of a run in progress (``key -> arrays``), in chunk files under ``<output>.parts/``.
 
-    def __init__(self, output: Path):
-        self.root = output.with_name(output.name + ".parts")
+    ``save`` buffers items in memory and writes them as one ``.npz`` chunk (temporary name +
+    rename, so a chunk is complete or absent) once the buffer holds ``max_items`` items,
+    ``max_bytes`` bytes of arrays, or its oldest item is ``max_seconds`` old (0 = every item at
+    once). So memory stays bounded by one batch, and a kill loses at most that batch, which
+    the next run recomputes. The defaults write every item at once (one chunk per ``save``);
+    runs pass a batch size (``extract_features``: 64 images, ``match_features``: 1024 pairs)
+    and call ``flush`` (``merge_parts`` does). Chunk names sort by time of writing (then
+    PID, sequence), and a key saved twice counts once: its last saved arrays win.
+    """
 
-    def _file(self, key: str) -> Path:
-        return self.root / (hashlib.sha1(key.encode("utf-8")).hexdigest() + ".npz")
+    def __init__(self, output: Path, *, max_items: int = 1, max_bytes: int = 64 << 20, max_seconds: float = 10.0):
+        self.output = Path(output)
+        self.root = self.output.with_name(self.output.name + ".parts")
+        self.max_items, self.max_bytes, self.max_seconds = max_items, max_bytes, max_seconds
+        self._buffer: list[tuple[str, dict[str, np.ndarray]]] = []
+        self._bytes, self._since, self._seq = 0, 0.0, 0
 
     def save(self, key: str, arrays: dict[str, np.ndarray]) -> None:
+        """Add one finished item; it reaches the disk at the next ``flush`` (automatic when the batch is full)."""
+        arrays = {name: np.asarray(value) for name, value in arrays.items()}
+        if not self._buffer:
+            self._since = time.monotonic()
+        self._buffer.append((key, arrays))
+        self._bytes += sum(a.nbytes for a in arrays.values())
+        if (len(self._buffer) >= self.max_items or self._bytes >= self.max_bytes
+                or time.monotonic() - self._since >= self.max_seconds):
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the buffered items as one chunk file (nothing if the buffer is empty)."""
+        if not self._buffer:
+            return
         self.root.mkdir(parents=True, exist_ok=True)
-        target = self._file(key)
-        tmp = target.with_suffix(".tmp")
-        with open(tmp, "wb") as f:
-            np.savez(f, __key__=np.array(key), **arrays)
-        os.replace(tmp, target)
+        self._seq += 1
+        name = f"{time.time_ns():020d}-{os.getpid()}-{self._seq:06d}.npz"
+        target, tmp = self.root / name, self.root / f".{name}.{os.getpid()}.tmp"
+        members = {"__keys__": np.array([key for key, _ in self._buffer], dtype=str)}
+        for i, (_, arrays) in enumerate(self._buffer):
+            members.update({f"{i}.{k}": v for k, v in arrays.items()})
+        try:
+            with open(tmp, "wb") as f:
+                np.savez(f, **members)
+            os.replace(tmp, target)
+        finally:
+            tmp.unlink(missing_ok=True)
+        self._buffer, self._bytes = [], 0
+
+    def chunks(self) -> list[Path]:
+        """Complete chunk files, oldest first (temporaries of killed writers are deleted)."""
+        if not self.root.is_dir():
+            return []
+        for tmp in self.root.glob(".*.tmp"):
+            pid = tmp.name.rsplit(".", 2)[-2]
+            if not pid.isdigit() or int(pid) == os.getpid() or not _pid_alive(int(pid)):
+                tmp.unlink(missing_ok=True)
+        return sorted(self.root.glob("*.npz"))
+
+    def _chunk_keys(self, chunk: Path) -> list[str] | None:
+        try:
+            with np.load(chunk) as data:
+                return [str(k) for k in data["__keys__"]]
+        except Exception:  # noqa: BLE001 - a damaged chunk (disk trouble) is dropped and its items redone
+            logger.warning("%s: unreadable part file, its items will be computed again", chunk)
+            chunk.unlink(missing_ok=True)
+            return None
+
+    def _index(self, chunks: list[Path] | None = None) -> dict[str, tuple[Path, int]]:
+        """Where the last saved version of each key is: ``key -> (chunk, position)``; reads keys only."""
+        index = {}
+        for chunk in self.chunks() if chunks is None else chunks:
+            for i, key in enumerate(self._chunk_keys(chunk) or []):
+                index[key] = (chunk, i)
+        return index
+
+    def keys(self) -> set[str]:
+        """Keys of all saved items (chunks on disk and the buffer), without reading their arrays."""
+        return set(self._index()) | {key for key, _ in self._buffer}
+
+    def items(self, chunks: list[Path] | None = None) -> Iterator[tuple[str, dict[str, np.ndarray]]]:
+        """Yield each saved key once with its last saved arrays, one chunk in memory at a time.
+
+        Only the buffered items that were flushed count (call ``flush`` first); ``chunks``
+        restricts the walk to these chunk files (default: all).
+        """
+        index = self._index(chunks)
+        for chunk in sorted({c for c, _ in index.values()}):
+            try:
+                with np.load(chunk) as data:
+                    keys = [str(k) for k in data["__keys__"]]
+                    members: dict[int, dict[str, np.ndarray]] = {}
+                    for member in data.files:
+                        if member != "__keys__":
+                            i, name = member.split(".", 1)
+                            members.setdefault(int(i), {})[name] = data[member]
+            except Exception:  # noqa: BLE001 - see _chunk_keys
+                logger.warning("%s: unreadable part file, its items will be computed again", chunk)
+                chunk.unlink(missing_ok=True)
+                continue
+            for i, key in enumerate(keys):
+                if index.get(key) == (chunk, i):
+                    yield key, members.get(i, {})
 
     def load_all(self) -> dict[str, dict[str, np.ndarray]]:
-        """All complete parts by key (unreadable leftovers are dropped and recomputed)."""
-        parts = {}
-        for file in sorted(self.root.glob("*.npz")) if self.root.is_dir() else []:
-            try:
-                with np.load(file) as data:
-                    arrays = {k: data[k] for k in data.files}
-                parts[str(arrays.pop("__key__"))] = arrays
-            except Exception:  # noqa: BLE001 - a torn file is simply redone
-                file.unlink(missing_ok=True)
-        return parts
+        """All saved items in memory at once (for small stores and tests; runs use ``items``)."""
+        return dict(self.items())
+
+    def recover(self) -> None:
+        """Finish a merge killed between its rename and its cleanup: drop the chunks the file already holds.
+
+        Before renaming its file into place, ``merge_parts`` writes its merge id (also stored in
+        the file) and the names of the chunks it merged into ``MERGING`` here. If the file at
+        ``output`` carries that id, the rename happened and those chunks (only those) go;
+        otherwise the marker goes and the chunks stay for the next merge.
+        """
+        marker = self.root / MERGING
+        try:
+            merging = json.loads(marker.read_text())
+        except FileNotFoundError:
+            return
+        except (OSError, ValueError):  # a torn marker: its merge cannot have renamed yet
+            merging = {}
+        try:
+            with h5py.File(self.output, "r") as f:
+                landed = bool(merging) and str(f.attrs.get(MERGE_ID, "")) == merging.get("merge_id")
+        except OSError:
+            landed = False
+        self.drop([self.root / name for name in merging.get("chunks", [])] if landed else [])
+
+    def drop(self, chunks: list[Path]) -> None:
+        """Delete merged ``chunks``, then the ``MERGING`` marker, then the store's folder if nothing else is left."""
+        for chunk in chunks:
+            chunk.unlink(missing_ok=True)
+        (self.root / MERGING).unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            self.root.rmdir()
 
     def clear(self) -> None:
-        shutil.rmtree(self.root, ignore_errors=True)
+        """Forget every item: the buffer and the chunk files."""
+        self._buffer, self._bytes = [], 0
+        if self.root.is_dir():  # one atomic rename first, so no half-deleted store is ever seen
+            trash = temp_name(self.root)
+            os.replace(self.root, trash)
+            shutil.rmtree(trash, ignore_errors=True)
 
 
-def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None, write_group=None) -> int:
-    """Move all saved parts (and new ``attrs``) into the HDF5 file: copy, append, fsync, rename.
+WriteGroup = Callable[[h5py.File, str, dict[str, np.ndarray]], None]
 
-    ``write_group(f, key, arrays)`` stores one part (default: a feature-file image group),
-    so other files (matches) reuse the same crash-safe scheme. Returns the number of parts merged.
+
+def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None, write_group: WriteGroup | None = None) -> int:
+    """Write all saved parts (and new ``attrs``) into the HDF5 file: copy, append, fsync, rename, once.
+
+    Call it once, at the end of a run: each call copies the whole file (none when there is
+    nothing new). ``write_group(f, key, arrays)`` stores one part (default: a feature-file
+    image group), so other files (matches) reuse the same crash-safe scheme. Streams the
+    chunks (memory: one chunk). Returns the number of parts merged.
     """
     write_group = write_group or _write_group
-    pending = parts.load_all()
-    if pending or attrs:
-        tmp = path.with_name(path.name + ".tmp")
+    parts.flush()
+    parts.recover()
+    chunks = parts.chunks()
+    if not chunks and _has_attrs(path, attrs or {}):
+        parts.drop([])
+        return 0
+    merge_id = uuid.uuid4().hex
+    tmp = temp_name(path)
+    count = 0
+    try:
         shutil.copyfile(path, tmp)
         with h5py.File(tmp, "a") as f:
-            for key in sorted(pending):
-                write_group(f, key, pending[key])
+            for key, arrays in parts.items(chunks):
+                write_group(f, key, arrays)
+                count += 1
             f.attrs.update(attrs or {})
             f.attrs["modified"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+            f.attrs[MERGE_ID] = merge_id
+        if chunks:
+            _write_atomic(parts.root / MERGING, json.dumps({"merge_id": merge_id, "chunks": [c.name for c in chunks]}))
         _fsync_replace(tmp, path)
-    parts.clear()
-    return len(pending)
+    finally:
+        tmp.unlink(missing_ok=True)
+    parts.drop(chunks)
+    return count
+
+
+def _has_attrs(path: Path, attrs: dict) -> bool:
+    """Whether the file already holds ``attrs`` (then a merge without parts would change nothing)."""
+    with h5py.File(path, "r") as f:
+        return all(name in f.attrs and np.array_equal(f.attrs[name], value) for name, value in attrs.items())
+
+
+def finish_run(path: Path, parts: PartStore, attrs: dict | None = None, write_group: WriteGroup | None = None,
+               what: str = "items") -> int:
+    """``merge_parts`` at the end of a run; Ctrl-C / SIGTERM during it becomes ``Interrupted`` (parts kept)."""
+    try:
+        return merge_parts(path, parts, attrs, write_group)
+    except KeyboardInterrupt:
+        raise Interrupted(f"interrupted while writing {path}: the finished {what} are kept in {parts.root}; "
+                          "run the same command again to resume") from None
+
+
+def keep_parts(parts: PartStore) -> None:
+    """Flush the buffered items of a run that is failing, so the next run reuses them.
+
+    Best effort: an OS failure here (the disk may be what failed) must not hide the first error.
+    """
+    try:
+        parts.flush()
+    except OSError as exc:
+        logger.warning("%s: could not save the last finished items (%s); they will be computed again", parts.root, exc)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # the part store's temporary pattern
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 def json_attr(value: object) -> str:
@@ -154,25 +423,69 @@ def json_attr(value: object) -> str:
     return json.dumps(value, sort_keys=True)
 
 
+@contextlib.contextmanager
+def writer_lock(path: Path, what: str) -> Iterator[None]:
+    """Hold the exclusive lock of output ``path`` for the block: one writer per file.
+
+    SekdError naming the other process's PID if it is taken, or if the lock file cannot
+    be created (the output's folder is a file, is read-only, ...).
+    """
+    if path.is_dir():  # refused before a lock file is put into the user's folder
+        raise SekdError(f"{path}: is a folder, not a {what}; give the name of a file to write (e.g. {path / 'out.h5'})")
+    with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(exclusive_lock(path, what=what))
+        except OSError as exc:
+            blocker = next((parent for parent in path.parents if parent.exists()), None)
+            if blocker is not None and not blocker.is_dir():
+                raise SekdError(f"{path}: cannot be written: {blocker} is a file, not a folder; "
+                                "choose another output") from exc
+            raise SekdError(f"{path}: cannot create its lock file ({exc.strerror or exc}); "
+                            "choose an output in a writable folder") from exc
+        yield
+
+
 def prepare_output(path: Path, attrs: dict, parts: PartStore, overwrite: bool, compare: tuple[str, ...],
                    what: str = "configuration") -> None:
     """Create ``path`` with ``attrs``, or check that the existing file agrees on the ``compare`` attributes.
 
-    A resumed run must add to a file made the same way; a different one is refused
-    (``overwrite`` replaces it). Leftovers of a killed merge are removed first.
+    A resumed run must add to a file made the same way; a different one is refused.
+    ``overwrite`` replaces the file, but only a sekd file of the same kind (``attrs["format"]``):
+    anything else at ``path`` (a text file, a COLMAP database, a folder) is refused and left
+    alone. Leftovers of killed writers are removed first. Call it holding the output's lock.
     """
-    path.with_name(path.name + ".tmp").unlink(missing_ok=True)
-    if path.exists() and overwrite:
-        path.unlink()
+    remove_stale_temps(path)
+    if overwrite and (path.exists() or path.is_symlink()):
+        check_replaceable(path, attrs["format"])
+        parts.clear()  # first: old parts must never reach the new file
+        create_empty(path, attrs)
+        return
     if not path.exists():
         parts.clear()
         path.parent.mkdir(parents=True, exist_ok=True)
         create_empty(path, attrs)
         return
-    existing = read_attrs(path, attrs["format"])
+    existing = read_attrs(path, attrs["format"], role="output")
+    parts.recover()
     for name in compare:
         if existing.get(name) != attrs.get(name):
             raise SekdError(
                 f"{path}: was made with a different {what} ({name}={existing.get(name)}, now {attrs.get(name)}); "
                 "pass --overwrite to replace it or choose another output file"
             )
+
+
+def check_replaceable(path: Path, file_format: str) -> None:
+    """SekdError unless ``path`` is an HDF5 file with ``format == file_format`` (what --overwrite may replace)."""
+    kind = {FORMAT: "features"}.get(file_format, file_format.removeprefix("sekd-"))
+    refuse = f"--overwrite only replaces a sekd {kind} file; delete it yourself or choose another output"
+    if path.is_dir():
+        raise SekdError(f"{path}: is a folder; {refuse}")
+    try:
+        with h5py.File(path, "r") as f:
+            found = f.attrs.get("format")
+    except OSError:
+        raise SekdError(f"{path}: is not an HDF5 file; {refuse}") from None
+    if found != file_format:
+        what = f"a {found!s} file" if found is not None else "an HDF5 file without a sekd format"
+        raise SekdError(f"{path}: is {what}, not a sekd {kind} file; {refuse}")

@@ -6,6 +6,8 @@ is *not* applied: COLMAP works in the stored pixel frame, and so do we.
 """
 from __future__ import annotations
 
+import struct
+import threading
 from pathlib import Path
 
 import cv2
@@ -14,6 +16,16 @@ import numpy as np
 from .errors import SekdError
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".tif", ".tiff", ".bmp")
+#: Default pixel cap (``--max-pixels``): larger images are decoded at 1/2, 1/4 or 1/8 size.
+DEFAULT_MAX_PIXELS = 100_000_000
+#: Decode-time reductions OpenCV offers (IMREAD_REDUCED_*): factor -> (grayscale flag, colour flag).
+_REDUCED = {
+    2: (cv2.IMREAD_REDUCED_GRAYSCALE_2, cv2.IMREAD_REDUCED_COLOR_2),
+    4: (cv2.IMREAD_REDUCED_GRAYSCALE_4, cv2.IMREAD_REDUCED_COLOR_4),
+    8: (cv2.IMREAD_REDUCED_GRAYSCALE_8, cv2.IMREAD_REDUCED_COLOR_8),
+}
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_PIL_LOCK = threading.Lock()
 
 
 class ImageReadError(Exception):
@@ -45,17 +57,157 @@ def read_image(path: str | Path, grayscale: bool = True) -> np.ndarray:
     were produced with (converting a colour image afterwards differs by one grey level on
     ~0.05% of pixels). 16-bit images are scaled to 8 bits; alpha is dropped.
     """
+    flags = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR
+    return _decode(path, flags, grayscale)
+
+
+def _decode(path: str | Path, flags: int, grayscale: bool) -> np.ndarray:
     try:
         data = np.fromfile(str(path), dtype=np.uint8)  # handles any file name, unlike imread on Windows
     except OSError as exc:
         raise ImageReadError(f"{path}: cannot read file ({exc.strerror})") from exc
-    flags = cv2.IMREAD_IGNORE_ORIENTATION | (cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR)
-    image = cv2.imdecode(data, flags) if data.size else None
+    except MemoryError as exc:
+        raise ImageReadError(f"{path}: file too large to read into memory") from exc
+    try:  # a corrupt file can make OpenCV raise instead of returning None
+        image = cv2.imdecode(data, flags | cv2.IMREAD_IGNORE_ORIENTATION) if data.size else None
+    except (cv2.error, MemoryError) as exc:
+        raise ImageReadError(f"{path}: not a decodable image ({str(exc).strip().splitlines()[-1][:200]})") from exc
     if image is None:
         raise ImageReadError(f"{path}: not a decodable image (corrupt or unsupported format)")
     if image.dtype != np.uint8:
         image = _to_uint8(image)
-    return image if grayscale else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    if image.ndim == 3 and grayscale:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    return image if grayscale or image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def image_size(path: str | Path) -> tuple[int, int] | None:
+    """``(width, height)`` from the file header, without decoding the pixels; None when unknown.
+
+    PNG and JPEG are parsed here (the formats OpenCV can decode at reduced size); other
+    formats go through Pillow's lazy ``open``, which also reads only the header.
+    """
+    try:
+        with open(path, "rb") as f:
+            head = f.read(32)
+            if head.startswith(b"\x89PNG\r\n\x1a\n") and head[12:16] == b"IHDR":
+                return struct.unpack(">II", head[16:24])
+            if head.startswith(b"\xff\xd8"):
+                return _jpeg_size(f)
+    except (OSError, struct.error):
+        return None
+    return _pil_size(path)
+
+
+def _jpeg_size(f, max_garbage: int = 65536) -> tuple[int, int] | None:
+    """Walk the JPEG markers up to the first start-of-frame (SOFn) and read its size.
+
+    Segments are skipped by their length, so this reads a few bytes per segment; a corrupt
+    file ends the walk (None) after ``max_garbage`` bytes that are not markers.
+    """
+    f.seek(2)
+    garbage = 0
+    while True:
+        byte = f.read(1)
+        while byte and byte != b"\xff" and garbage < max_garbage:  # tolerate garbage, as libjpeg does
+            byte, garbage = f.read(1), garbage + 1
+        while byte == b"\xff":  # fill bytes
+            byte = f.read(1)
+        if not byte or garbage >= max_garbage:
+            return None
+        marker = byte[0]
+        if marker in (0x01, 0xD8) or 0xD0 <= marker <= 0xD7:
+            continue  # markers without a length
+        if marker in (0xD9, 0xDA):
+            return None  # end of image or scan data before any frame header
+        length = struct.unpack(">H", f.read(2))[0]
+        if length < 2:
+            return None  # a corrupt length would walk backwards forever
+        if marker in _JPEG_SOF:
+            height, width = struct.unpack(">xHH", f.read(5))
+            return (width, height) if width and height else None
+        f.seek(length - 2, 1)
+
+
+def _pil_size(path: str | Path) -> tuple[int, int] | None:
+    try:
+        from PIL import Image
+    except ImportError:
+        return None
+    with _PIL_LOCK:  # Pillow's decompression-bomb check would refuse exactly the images we need to size
+        limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+        try:
+            with Image.open(path) as im:
+                return im.size
+        except Exception:  # noqa: BLE001 - any header Pillow cannot parse: size unknown, OpenCV decides
+            return None
+        finally:
+            Image.MAX_IMAGE_PIXELS = limit
+
+
+def reduction_factor(width: int, height: int, max_pixels: int | None) -> int:
+    """The decode-time reduction (1, 2, 4 or 8) that brings ``width x height`` within ``max_pixels``.
+
+    Raises ImageReadError when even 1/8 is too large.
+    """
+    if not max_pixels or width * height <= max_pixels:
+        return 1
+    for factor in _REDUCED:
+        if (width // factor) * (height // factor) <= max_pixels:
+            return factor
+    raise ImageReadError(
+        f"{width} x {height} px ({width * height / 1e6:.0f} MP) is more than 64 times the pixel cap "
+        f"({max_pixels / 1e6:g} MP); downscale the file or raise --max-pixels"
+    )
+
+
+def load_scaled(path: str | Path, resize_max: int | None = None, grayscale: bool = True,
+                max_pixels: int | None = DEFAULT_MAX_PIXELS) -> tuple[tuple[int, int], np.ndarray, float, float]:
+    """Decode an image for feature extraction, within the pixel cap, then apply ``resize_max``.
+
+    An image above ``max_pixels`` is decoded at 1/2, 1/4 or 1/8 size (JPEG: by libjpeg's
+    DCT scaling, which never holds the full image; other formats: OpenCV decodes, then
+    downsizes), so one huge photo neither exhausts memory nor blocks a folder.
+    Returns ``((height, width) of the original, image, sx, sy)`` with (sx, sy) = original
+    pixels per pixel of ``image``, for ``to_original_pixels``. ImageReadError when the
+    image cannot be decoded or is beyond 64x the cap.
+    """
+    size = image_size(path) if max_pixels else None
+    factor = 1
+    if size is not None:
+        try:
+            factor = reduction_factor(*size, max_pixels)
+        except ImageReadError as exc:
+            raise ImageReadError(f"{path}: {exc}") from None
+    if factor == 1:
+        image = read_image(path, grayscale)
+        original = image.shape[:2]
+        if max_pixels and original[0] * original[1] > max_pixels:  # the header lied or was unknown
+            image, sx0, sy0 = _downsize_to_cap(image, max_pixels)
+        else:
+            sx0 = sy0 = 1.0
+    else:
+        width, height = size
+        image = _decode(path, _REDUCED[factor][0 if grayscale else 1], grayscale)
+        original = (height, width)
+        if _is_jpeg(path):  # libjpeg's DCT scaling: output pixel i covers original pixels [f i, f i + f)
+            sx0 = sy0 = float(factor)
+        else:  # OpenCV resizes to floor(W / f): the scale is the size ratio
+            sx0, sy0 = width / image.shape[1], height / image.shape[0]
+    small, sx, sy = resize_max_side(image, resize_max)
+    return original, small, sx0 * sx, sy0 * sy
+
+
+def _downsize_to_cap(image: np.ndarray, max_pixels: int) -> tuple[np.ndarray, float, float]:
+    h, w = image.shape[:2]
+    ratio = (max_pixels / (h * w)) ** 0.5
+    new_w, new_h = max(1, int(w * ratio)), max(1, int(h * ratio))
+    return cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA), w / new_w, h / new_h
+
+
+def _is_jpeg(path: str | Path) -> bool:
+    with open(path, "rb") as f:
+        return f.read(2) == b"\xff\xd8"
 
 
 def _to_uint8(image: np.ndarray) -> np.ndarray:

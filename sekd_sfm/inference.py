@@ -1,4 +1,4 @@
-"""SEKD inference (SPEC.md §2): fast network preparation, NMS, top-k, sub-pixel, descriptors.
+"""SEKD inference (docs/method.md, Inference): fast network preparation, NMS, top-k, sub-pixel, descriptors.
 
 Pixel convention throughout: keypoint (x, y) = (column, row) with integer values at
 pixel centres (OpenCV); COLMAP's +0.5 shift happens only when writing a database.

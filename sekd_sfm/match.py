@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from . import cluster
 from . import featurefile as ff
 from . import matchfile as mf
 from .errors import Interrupted, SekdError
@@ -51,6 +52,8 @@ FALLBACK_RATIO = 0.8
 ROOTSIFT_FEATURES = ("sift",)
 #: Images whose prepared descriptors stay in memory while matching (exhaustive pairs reuse them).
 CACHE_IMAGES = 256
+#: Pairs per part chunk file (~32 KB of results per pair at 4000 keypoints: ~32 MB a chunk).
+PART_PAIRS = 1024
 
 
 @dataclass
@@ -251,13 +254,21 @@ def check_feature_file(features: Path) -> tuple[dict, dict[str, int]]:
     SekdError if some images hold descriptors of another size or type (a mixed file).
     """
     attrs = ff.read_attrs(features)
+    if attrs["format"] == "hloc":
+        logger.info("%s: an hloc feature file (no feature type recorded): descriptors matched as float vectors "
+                    "(L2 distance, ratio %s unless --ratio)", features, FALLBACK_RATIO)
     dim, dtype = int(attrs["descriptor_dim"]), np.dtype(str(attrs["descriptor_dtype"]))
     sizes, odd = {}, []
     with h5py.File(features, "r") as f:
         for key in ff.list_keys(features):
+            if "descriptors" not in f[key]:
+                raise SekdError(f"{features}: image '{key}' has keypoints but no descriptors; "
+                                "extract the images again with `sekd extract` (or hloc's extract_features)")
             d = f[key]["descriptors"]
-            sizes[key] = int(d.shape[1])
-            if d.shape[0] != dim or d.dtype != dtype:
+            sizes[key] = int(d.shape[-1])
+            # float16 (hloc's as_half) is read as float32, so only the kind of number must agree.
+            same_type = d.dtype == dtype or (d.dtype == np.float16 and dtype == np.float32)
+            if d.ndim != 2 or d.shape[0] != dim or not same_type:
                 odd.append(f"{key} ({d.dtype} x {d.shape[0]})")
     if odd:
         raise SekdError(
@@ -300,7 +311,7 @@ def _check_same_features(output: Path, attrs: dict, features: Path) -> None:
     """Refuse to add matches of one feature type to a match file of another."""
     if not output.exists():
         return
-    old = ff.read_attrs(output, mf.FORMAT)
+    old = ff.read_attrs(output, mf.FORMAT, role="output")
     keys = ("feature_type", "descriptor_dim", "descriptor_dtype")
     if any(str(old.get(k)) != str(attrs[k]) for k in keys):
         raise SekdError(
@@ -319,44 +330,65 @@ def match_features(
     overwrite: bool = False,
     num_threads: int | None = None,
     progress: bool = True,
-    checkpoint_seconds: float = 60.0,
+    checkpoint_seconds: float = 10.0,
+    executor: str = "local",
+    ray_options: cluster.RayOptions | None = None,
 ) -> Path:
     """Match the image pairs listed in the file ``pairs`` using the features in ``features``; write ``output``.
 
     Resumable: pairs already in ``output`` (in either order) are skipped. Refuses (SekdError)
     pairs naming images the feature file lacks, and mixing feature types. Returns ``output``.
+
+    Pairs are streamed in batches: memory holds the pair list, the descriptors of at most
+    CACHE_IMAGES images and one batch of results. Finished pairs are saved to
+    ``<output>.parts/`` at least every ``checkpoint_seconds`` and written into ``output`` once,
+    at the end (see ``featurefile``). Holds ``output``'s lock: a second run on the same file is refused.
     """
     config = config or MatchConfig()
     features, pairs_path, output = Path(features), Path(pairs), Path(output)
+    cluster.check_executor(executor, ray_options)  # ``executor="ray"``: match on a Ray cluster (``cluster``), same file
+    with ff.writer_lock(output, "matches file"):
+        return _match(features, pairs_path, output, config, overwrite, num_threads, progress, checkpoint_seconds,
+                      executor, ray_options)
+
+
+def _match(features: Path, pairs_path: Path, output: Path, config: MatchConfig, overwrite: bool,
+           num_threads: int | None, progress: bool, checkpoint_seconds: float, executor: str = "local",
+           ray_options: cluster.RayOptions | None = None) -> Path:
     fattrs, sizes = check_feature_file(features)
     pair_list = read_pairs(pairs_path)
     check_pairs(pair_list, sizes, features, pairs_path)
+    mf.check_hloc_keys(pair_list, pairs_path)
     binary = str(fattrs["descriptor_dtype"]) == "uint8"
     described = describe_config(config, str(fattrs["feature_type"]), binary)
     attrs = _file_attrs(features, fattrs, described)
     if not overwrite:
         _check_same_features(output, attrs, features)
-    parts = ff.PartStore(output)
+    parts = ff.PartStore(output, max_items=PART_PAIRS, max_seconds=checkpoint_seconds)
     ff.prepare_output(output, attrs, parts, overwrite, ("features_config", "config"), "feature or match configuration")
     done = mf.stored_pairs(output, pair_list) | {frozenset(pair) for pair in _part_pairs(parts)}
     todo = [p for p in pair_list if frozenset(p) not in done]
     logger.info("%s: %d pairs, %d already matched, %d to match (%s)", output, len(pair_list),
                 len(pair_list) - len(todo), len(todo), described)
     set_num_threads(num_threads)
-    _run(features, todo, sizes, binary, described, config, parts, output, progress, checkpoint_seconds)
+    if executor == "local":
+        _run(features, todo, sizes, binary, described, config, parts, output, progress)
+    else:
+        cluster.match_on_ray(features, todo, sizes, binary, described, config, parts, output, progress=progress,
+                             options=ray_options)
+    parts.flush()  # on disk before the merge: a merge that fails or is killed loses nothing
     # Nothing new: the file stays untouched (a rewrite would change its time for nothing).
-    ff.merge_parts(output, parts, {"modified": time.strftime("%Y-%m-%dT%H:%M:%S%z")} if todo else None,
-                   mf.write_pair_group)
+    ff.finish_run(output, parts, {"modified": time.strftime("%Y-%m-%dT%H:%M:%S%z")} if todo else None,
+                  mf.write_pair_group, "pairs")
     return output
 
 
 def _part_pairs(parts: ff.PartStore) -> list[tuple[str, str]]:
-    return [tuple(json.loads(key)) for key in parts.load_all()]
+    return [tuple(json.loads(key)) for key in sorted(parts.keys())]
 
 
-def _run(features, todo, sizes, binary, described, config, parts, output, progress, checkpoint_seconds) -> None:
+def _run(features, todo, sizes, binary, described, config, parts, output, progress) -> None:
     device = resolve_device(config.device)
-    last_merge = time.monotonic()
     bar = tqdm(total=len(todo), unit="pair", desc="match", disable=not progress, dynamic_ncols=True)
     try:
         with h5py.File(features, "r") as f:
@@ -364,13 +396,13 @@ def _run(features, todo, sizes, binary, described, config, parts, output, progre
             for batch in batches(todo, sizes, config.max_elements):
                 _match_and_save(batch, cache, binary, described, config, parts)
                 bar.update(len(batch))
-                if time.monotonic() - last_merge > checkpoint_seconds:
-                    ff.merge_parts(output, parts, write_group=mf.write_pair_group)
-                    last_merge = time.monotonic()
     except KeyboardInterrupt:
         bar.close()
-        saved = ff.merge_parts(output, parts, write_group=mf.write_pair_group)
+        saved = ff.finish_run(output, parts, write_group=mf.write_pair_group, what="pairs")
         raise Interrupted(f"interrupted: {saved} more pairs saved in {output}; run the same command again to resume") from None
+    except BaseException:
+        ff.keep_parts(parts)  # finished pairs stay for the next run
+        raise
     finally:
         bar.close()
 

@@ -1,7 +1,7 @@
 """The SEKD network (Song et al. 2020), layer for layer as the authors released it.
 
 Module and parameter names match the released checkpoint so that
-``weights/sekd/sekd.pth`` loads with ``strict=True`` (see ``SPEC.md`` §1).
+``weights/sekd/sekd.pth`` loads with ``strict=True`` (see ``docs/method.md``, Network).
 """
 from __future__ import annotations
 

@@ -4,35 +4,62 @@ A pair is ``(name0, name1)`` with image keys as in the feature file. Every gener
 returns *unique* pairs: duplicates and reversed duplicates ``(b, a)`` of an earlier
 ``(a, b)`` collapse to the first one seen, and self-pairs ``(a, a)`` are dropped.
 
-Pairs files hold one pair per line, written ``name0<TAB>name1`` so that names with
-spaces survive. When reading, a line with a tab is split at the tab; a line without
-one is split at whitespace (hloc's and COLMAP's format), which then must give exactly
-two names. Blank lines and lines starting with ``#`` are ignored.
+Modes: ``exhaustive`` (all pairs), ``sequential`` (video: a sliding window, optional
+keyframe loop closure), ``retrieval`` (each image with its K most similar images by a
+global descriptor, see ``retrieval.py``), ``from-file``, and ``auto`` (the default):
+exhaustive up to ``2K + 1`` images, where it matches no more pairs than retrieval's
+``N * K`` bound, retrieval above (docs/pairs.md has the measurements). Retrieval can be
+added to ``sequential`` (loop closure for video) and to ``from-file`` (union).
+
+Pairs files hold one pair per line, ``name0 name1`` separated by one space: the format
+COLMAP's pair importer and hloc read. Names containing whitespace (or starting with
+``#``, a comment for COLMAP) cannot be written; those images are skipped with one warning.
+When reading, older tab-separated lines are still accepted: a line with a tab is split at
+the tab, a line without one at whitespace, which then must give exactly two names. Blank
+lines and lines starting with ``#`` are ignored.
 """
 from __future__ import annotations
 
 import logging
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from . import featurefile as ff
 from .errors import SekdError
+from .retrieval import RetrievalConfig, compute_global_descriptors, nearest_neighbors
 
 logger = logging.getLogger("sekd")
-PAIR_MODES = ("exhaustive", "sequential", "from-file")
+PAIR_MODES = ("auto", "exhaustive", "sequential", "retrieval", "from-file")
+DEFAULT_NEIGHBORS = 20
 Pair = tuple[str, str]
 
 
 @dataclass
 class PairsConfig:
-    """How to choose pairs: ``mode`` in PAIR_MODES; ``window``/``loop_every`` for sequential; ``file`` for from-file."""
+    """How to choose pairs.
 
-    mode: str = "exhaustive"
+    ``mode`` in PAIR_MODES; ``window``/``loop_every`` for sequential; ``file`` for from-file.
+    ``num_neighbors`` K: retrieval neighbours per image. None means 20 for ``retrieval`` and
+    ``auto``, and none added to ``sequential``/``from-file``; K > 0 there adds retrieval pairs.
+    """
+
+    mode: str = "auto"
     window: int = 10
     loop_every: int = 0
     file: str | None = None
+    num_neighbors: int | None = None
+    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+
+
+def auto_mode(num_images: int, num_neighbors: int = DEFAULT_NEIGHBORS) -> str:
+    """``exhaustive`` while its N (N - 1) / 2 pairs are at most retrieval's N * K (N <= 2K + 1), else ``retrieval``.
+
+    Up to there retrieval saves no matching and could miss pairs; above, exhaustive grows
+    as N^2 while retrieval grows as N * K.
+    """
+    return "exhaustive" if num_images <= 2 * num_neighbors + 1 else "retrieval"
 
 
 def unique_pairs(pairs) -> list[Pair]:
@@ -80,7 +107,7 @@ def parse_pair_line(line: str) -> Pair | None:
         return None
     fields = line.split("\t") if "\t" in line else line.split()
     if len(fields) != 2 or not all(fields):
-        raise ValueError(f"expected two names separated by a tab (or by whitespace), got {len(fields)} field(s)")
+        raise ValueError(f"expected two names separated by a space (or a tab), got {len(fields)} field(s)")
     return fields[0], fields[1]
 
 
@@ -102,54 +129,140 @@ def read_pairs(path: str | Path) -> list[Pair]:
     return unique_pairs(pairs)
 
 
+def unwritable_reason(name: str) -> str | None:
+    """Why ``name`` cannot be written to a pairs file (None if it can)."""
+    if not name:
+        return "empty name"
+    if name != name.strip():
+        return "leading/trailing space"
+    for char, what in (("\n", "newline"), ("\r", "carriage return"), ("\t", "tab")):
+        if char in name:
+            return what
+    if any(c.isspace() for c in name):
+        return "space"  # COLMAP and hloc split pair lines at whitespace
+    if name.startswith("#"):
+        return "starts with '#' (a comment line for COLMAP)"
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return "not valid UTF-8"
+    return None
+
+
+def split_writable(names: list[str]) -> tuple[list[str], dict[str, str]]:
+    """(names a pairs file can hold, {other name: why not})."""
+    bad = {n: r for n in names if (r := unwritable_reason(n))}
+    return [n for n in names if n not in bad], bad
+
+
+def warn_skipped(bad: dict[str, str]) -> None:
+    """One warning line listing the images left out of the pairs and why."""
+    if bad:
+        listed = ", ".join(f"{name!r} ({why})" for name, why in sorted(bad.items()))
+        logger.warning("Warning: skipping %d image(s) whose names COLMAP and hloc pair files cannot hold "
+                       "(they split lines at whitespace); rename them to match them: %s", len(bad), listed)
+
+
 def format_pairs(pairs: list[Pair]) -> str:
-    """Pairs file text: ``name0<TAB>name1`` lines; SekdError for names a pairs file cannot hold."""
+    """Pairs file text: ``name0 name1`` lines; SekdError for names a pairs file cannot hold."""
     for pair in pairs:
         for name in pair:
-            if any(c in name for c in "\t\r\n") or name != name.strip() or not name:
-                raise SekdError(f"image name {name!r} cannot be written to a pairs file (tab, newline or edge spaces)")
-    return "".join(f"{a}\t{b}\n" for a, b in pairs)
+            if reason := unwritable_reason(name):
+                raise SekdError(f"image name {name!r} cannot be written to a pairs file ({reason}); rename the image")
+    return "".join(f"{a} {b}\n" for a, b in pairs)
 
 
 def write_pairs(pairs: list[Pair], path: str | Path) -> Path:
     """Write a pairs file atomically (temporary file, fsync, rename). Returns ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8", newline="\n") as f:
-        f.write(format_pairs(pairs))
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    text = format_pairs(pairs)
+    tmp = path.with_name(f"{path.name}.tmp.{os.getpid()}")
+    try:
+        with open(tmp, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise SekdError(f"{path}: cannot write pairs file ({exc}); free space or choose another output") from exc
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 
-def generate_pairs(names: list[str], config: PairsConfig) -> list[Pair]:
-    """The pairs ``config`` asks for among ``names`` (a from-file list is read, not filtered)."""
-    if config.mode == "exhaustive":
-        return exhaustive_pairs(sorted(names))
-    if config.mode == "sequential":
-        return sequential_pairs(names, config.window, config.loop_every)
-    if config.mode == "from-file":
+def retrieval_pairs(features: Path, names: list[str], config: PairsConfig, num_neighbors: int,
+                    progress: bool = True) -> list[Pair]:
+    """Each of ``names`` with its ``num_neighbors`` most similar images (global descriptors beside ``features``)."""
+    global_file = compute_global_descriptors(features, config.retrieval, progress=progress)
+    neighbours = nearest_neighbors(global_file, names, num_neighbors)
+    return unique_pairs((a, b) for a in sorted(names) for b in neighbours[a])
+
+
+def resolve_mode(config: PairsConfig, num_images: int) -> tuple[str, int]:
+    """(concrete mode, retrieval neighbours K to add): ``auto`` decided by the number of images."""
+    if config.mode not in PAIR_MODES:
+        raise SekdError(f"unknown pairs mode {config.mode!r}; choose from {', '.join(PAIR_MODES)}")
+    if config.num_neighbors is not None and config.num_neighbors < 1:
+        raise SekdError(f"the number of retrieval neighbours must be at least 1, got {config.num_neighbors}")
+    mode = auto_mode(num_images, config.num_neighbors or DEFAULT_NEIGHBORS) if config.mode == "auto" else config.mode
+    if mode == "exhaustive":
+        return mode, 0
+    return mode, config.num_neighbors or (DEFAULT_NEIGHBORS if mode == "retrieval" else 0)
+
+
+def generate_pairs(names: list[str], config: PairsConfig, features: Path | None = None,
+                   progress: bool = True) -> list[Pair]:
+    """The pairs ``config`` asks for among ``names`` (a from-file list is read, not filtered).
+
+    Retrieval (mode ``retrieval``, or ``num_neighbors`` > 0 with ``sequential``/``from-file``)
+    needs the feature file ``features``; its pairs come after the others.
+    """
+    mode, neighbours = resolve_mode(config, len(names))
+    if mode == "exhaustive":
+        pairs = exhaustive_pairs(sorted(names))
+    elif mode == "sequential":
+        pairs = sequential_pairs(names, config.window, config.loop_every)
+    elif mode == "from-file":
         if not config.file:
             raise SekdError("pairs mode 'from-file' needs a pairs file")
-        return read_pairs(config.file)
-    raise SekdError(f"unknown pairs mode {config.mode!r}; choose from {', '.join(PAIR_MODES)}")
+        pairs = read_pairs(config.file)
+    else:
+        pairs = []
+    if neighbours and len(names) > 1:
+        if features is None:
+            raise SekdError("retrieval pairs need the feature file")
+        pairs += retrieval_pairs(features, names, config, neighbours, progress)
+    return unique_pairs(pairs)
 
 
-def make_pairs(features: str | Path, output: str | Path, config: PairsConfig | None = None) -> Path:
+def describe_mode(config: PairsConfig, num_images: int) -> str:
+    """Human-readable mode for logs, e.g. ``auto -> retrieval K=20, 307 images``."""
+    mode, k = resolve_mode(config, num_images)
+    text = mode + (f" + retrieval K={k}" if mode in ("sequential", "from-file") and k else
+                   f" K={k}" if mode == "retrieval" else "")
+    return f"auto -> {text}, {num_images} images" if config.mode == "auto" else text
+
+
+def make_pairs(features: str | Path, output: str | Path, config: PairsConfig | None = None, *,
+               progress: bool = True) -> Path:
     """Write the pairs among the images of the feature file ``features`` to ``output``. Returns ``output``.
 
-    An existing ``output`` with exactly these pairs is left untouched (reused).
+    Images whose names a pairs file cannot hold are left out with one warning. An existing
+    ``output`` with exactly these pairs is left untouched (reused).
     """
     config = config or PairsConfig()
     features, output = Path(features), Path(output)
     ff.read_attrs(features)
-    pairs = generate_pairs(ff.list_keys(features), config)
+    names, bad = split_writable(ff.list_keys(features))
+    pairs = generate_pairs(names, config, features, progress)
+    bad.update({n: r for pair in pairs for n in pair if (r := unwritable_reason(n))})  # from a --pairs-file
+    warn_skipped(bad)
+    pairs = [p for p in pairs if p[0] not in bad and p[1] not in bad]
     text = format_pairs(pairs)
-    if output.is_file() and output.read_text(encoding="utf-8") == text:
+    if output.is_file() and output.read_text(encoding="utf-8", errors="replace") == text:
         logger.info("%s: %d pairs, unchanged", output, len(pairs))
         return output
     write_pairs(pairs, output)
-    logger.info("%s: %d pairs (%s)", output, len(pairs), config.mode)
+    logger.info("%s: %d pairs (%s)", output, len(pairs), describe_mode(config, len(names)))
     return output

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import torch
 
+from .errors import SekdError
+
 PRECISIONS = ("auto", "fp32", "bf16")
 DEVICES = ("auto", "cpu", "cuda")
 
@@ -48,7 +50,9 @@ def shared_dir() -> Path:
 
 
 def set_num_threads(num_threads: int | None) -> int:
-    """Use ``num_threads`` intra-op threads (None or 0: one per available core)."""
+    """Use ``num_threads`` intra-op threads (None or 0: one per available core); SekdError if negative."""
+    if num_threads is not None and int(num_threads) < 0:
+        raise SekdError(f"--num-threads must be a positive number of CPU threads, got {num_threads}")
     if not num_threads:
         num_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     torch.set_num_threads(int(num_threads))
@@ -58,11 +62,13 @@ def set_num_threads(num_threads: int | None) -> int:
 def resolve_device(device: str = "auto") -> torch.device:
     """``auto`` picks CUDA when a GPU is present, else the CPU."""
     if device not in DEVICES:
-        raise ValueError(f"device must be one of {DEVICES}, got {device!r}")
+        raise SekdError(f"--device must be one of {', '.join(DEVICES)}, got {device!r}")
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     if device == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda was asked for but no CUDA GPU is visible to torch")
+        reason = ("this torch build has no CUDA support" if torch.version.cuda is None
+                  else "no CUDA GPU is visible (check the driver and CUDA_VISIBLE_DEVICES)")
+        raise SekdError(f"--device cuda: {reason}; use --device cpu or --device auto")
     return torch.device(device)
 
 

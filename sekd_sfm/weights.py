@@ -15,7 +15,15 @@ import torch
 from .errors import SekdError
 from .network import SEKDNet
 
-EMBEDDED_MODEL = Path(__file__).parent / "models" / "sekd_default.pth"
+MODELS_DIR = Path(__file__).parent / "models"
+#: The models carried by the package, by the name ``--model`` takes: ``own`` = trained by this
+#: project's ``sekd evolve`` (docs/model_card.md), ``authors`` = the SEKD authors' release
+#: (MIT licence in models/LICENSE-authors.txt; docs/model_card_authors.md).
+EMBEDDED_MODELS = {"own": MODELS_DIR / "sekd_own.pth", "authors": MODELS_DIR / "sekd_authors.pth"}
+#: The model used when neither --model nor --weights is given: the one that wins on relative
+#: pose and SfM (docs/model_card_authors.md has the numbers).
+DEFAULT_MODEL = "authors"
+EMBEDDED_MODEL = EMBEDDED_MODELS[DEFAULT_MODEL]
 
 
 @dataclass(frozen=True)
@@ -36,15 +44,21 @@ def file_sha256(path: Path, length: int = 16) -> str:
     return digest.hexdigest()[:length]
 
 
+def embedded_model_path(name: str = DEFAULT_MODEL) -> Path:
+    """The file of the embedded model ``name`` (``own`` or ``authors``); SekdError if unknown or absent."""
+    if name not in EMBEDDED_MODELS:
+        raise SekdError(f"unknown model {name!r}; choose one of {', '.join(EMBEDDED_MODELS)} or pass --weights PATH")
+    path = EMBEDDED_MODELS[name]
+    if not path.is_file():
+        raise SekdError(f"{path}: the embedded {name!r} model is missing from this installation; "
+                        "reinstall sekd-sfm or pass --weights PATH (for example the authors' sekd.pth)")
+    return path
+
+
 def resolve_weights_path(weights: str | Path | None) -> Path:
     """The checkpoint to load: ``weights`` if given, else the embedded default model."""
     if weights is None:
-        if not EMBEDDED_MODEL.is_file():
-            raise SekdError(
-                "no embedded SEKD model in this installation; pass --weights PATH "
-                "(for example the authors' sekd.pth)"
-            )
-        return EMBEDDED_MODEL
+        return embedded_model_path(DEFAULT_MODEL)
     path = Path(weights).expanduser()
     if not path.is_file():
         raise SekdError(f"{path}: weights file not found; pass --weights with an existing .pth checkpoint")

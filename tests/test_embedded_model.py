@@ -1,4 +1,4 @@
-"""The model shipped inside the package, and the step that ships it."""
+"""The models shipped inside the package (ours and the authors'), --model, and the step that ships ours."""
 import re
 from pathlib import Path
 
@@ -10,46 +10,139 @@ from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.errors import SekdError
 from sekd_sfm.train import ship
-from sekd_sfm.weights import EMBEDDED_MODEL, file_sha256, load_model
+from sekd_sfm.weights import (
+    DEFAULT_MODEL,
+    EMBEDDED_MODEL,
+    EMBEDDED_MODELS,
+    file_sha256,
+    load_model,
+)
 
-RUN = ROOT / "pipelines/train_default/run"
+OWN = EMBEDDED_MODELS["own"]
+AUTHORS = EMBEDDED_MODELS["authors"]
+#: sha256 of sekd_authors.pth: the authors' released tensors, re-saved once; they never change.
+AUTHORS_SHA256 = "0dd03b04fe6cb24c39381bfd8e6526d712f87586f56a516bad1cd5f2d7b03341"
+
+# The text files of a finished 3-round run of the `cpu` schedule (config, state, log,
+# validation, label history); its checkpoints are made by the `run` fixture.
+RUN_FILES = ROOT / "tests/data/ship_run"
 
 
-def test_embedded_model_loads_with_the_papers_parameter_count():
-    net, info = load_model()  # no weights: the embedded default
-    assert info.path == str(EMBEDDED_MODEL)
+@pytest.fixture
+def run(tmp_path) -> Path:
+    """A run folder: RUN_FILES, best.pth = our embedded model, step models = an untrained network."""
+    import shutil
+
+    import torch
+
+    from sekd_sfm.network import SEKDNet
+
+    folder = tmp_path / "run"
+    shutil.copytree(RUN_FILES, folder)
+    (folder / "models").mkdir()
+    shutil.copy(OWN, folder / "best.pth")
+    torch.manual_seed(0)
+    untrained = {"state_dict": SEKDNet().state_dict(), "sekd_sfm": {}}
+    for task in ("r0_d", "r1_d", "r2_d", "untrained"):
+        torch.save(untrained, folder / "models" / f"{task}.pth")
+    return folder
+
+
+@pytest.mark.parametrize("name", ["own", "authors"])
+def test_embedded_models_load_with_the_papers_parameter_count(name):
+    net, info = load_model(EMBEDDED_MODELS[name])
     assert sum(p.numel() for p in net.parameters()) == 661_762
-    assert EMBEDDED_MODEL.stat().st_size < 3_000_000
-    assert info.meta["schedule"] == "cpu" and info.meta["seed"] == 0 and "command" in info.meta
+    assert EMBEDDED_MODELS[name].stat().st_size < 3_000_000
+    if name == "own":
+        assert info.meta["schedule"] == "cpu" and info.meta["seed"] == 0 and "command" in info.meta
+    else:
+        assert info.sha256 == AUTHORS_SHA256[:16] and "Alibaba" in info.meta["license"]
 
 
-def test_model_card_checksum_is_the_embedded_files():
-    card = (ROOT / "docs/model_card.md").read_text()
-    assert re.search(r"SHA-256 \| `([0-9a-f]{64})`", card).group(1) == file_sha256(EMBEDDED_MODEL, 64)
+def test_default_model_is_an_embedded_one():
+    _, info = load_model()  # no weights: the default
+    assert info.path == str(EMBEDDED_MODEL) == str(EMBEDDED_MODELS[DEFAULT_MODEL])
 
 
-def test_embedded_model_estimates_graffiti_1_2(shared):
+@pytest.mark.parametrize("name, card", [("own", "docs/model_card.md"), ("authors", "docs/model_card_authors.md")])
+def test_model_card_checksum_is_the_embedded_files(name, card):
+    text = (ROOT / card).read_text()
+    assert re.search(r"SHA-256 \| `([0-9a-f]{64})`", text).group(1) == file_sha256(EMBEDDED_MODELS[name], 64)
+
+
+def test_authors_model_is_their_release_unchanged_with_its_licence(shared):
+    import torch
+
+    release = shared / "weights/sekd/sekd.pth"
+    ours = torch.load(AUTHORS, weights_only=True)
+    theirs = torch.load(release, map_location="cpu", weights_only=True)["state_dict"]
+    assert ours["state_dict"].keys() == theirs.keys()
+    assert all(torch.equal(ours["state_dict"][k], v) for k, v in theirs.items())
+    assert ours["sekd_sfm"]["source_sha256"] == file_sha256(release, 64)
+    assert file_sha256(release, 64) in (ROOT / "docs/model_card_authors.md").read_text()  # the card names the release
+    licence = (AUTHORS.parent / "LICENSE-authors.txt").read_text()
+    assert (shared / "weights/sekd/LICENSE").read_text() in licence
+
+
+@pytest.mark.parametrize("name", ["own", "authors"])
+def test_embedded_models_estimate_graffiti_1_2(shared, name):
     """Regression guard, not a benchmark: the easiest viewpoint pair within 3 px mean corner error."""
-    assert ship.graffiti_corner_error() < 3.0
+    assert ship.graffiti_corner_error(EMBEDDED_MODELS[name]) < 3.0
 
 
-def test_ship_refuses_a_checkpoint_that_fails_the_guard(tmp_path, shared):
-    # r2_b of the first run validates better than r2_d but misses v_graffiti 1-2 (3.84 px).
+def test_ship_refuses_a_checkpoint_that_fails_the_guard(tmp_path, shared, run):
+    # An untrained network misses v_graffiti 1-2 by hundreds of pixels.
     with pytest.raises(SekdError, match="v_graffiti 1-2 mean corner error"):
-        ship.ship_model(RUN, tmp_path / "m.pth", which="models/r2_b.pth")
+        ship.ship_model(run, tmp_path / "m.pth", which="models/untrained.pth")
     assert not (tmp_path / "m.pth").exists()
 
 
-def test_extract_without_weights_uses_the_embedded_model(tmp_path, shared):
+@pytest.fixture
+def one_image(tmp_path) -> Path:
     images = tmp_path / "images"
     images.mkdir()
     (images / "1.ppm").write_bytes((GRAFFITI / "1.ppm").read_bytes())
-    result = CliRunner().invoke(sekd, ["extract", str(images), "-o", str(tmp_path / "f.h5"), "--resize-max", "320",
-                                       "--no-progress"])
+    return images
+
+
+@pytest.mark.parametrize("model", [None, "own", "authors"])
+def test_extract_model_option_picks_the_embedded_file(tmp_path, shared, one_image, model):
+    args = ["extract", str(one_image), "-o", str(tmp_path / "f.h5"), "--resize-max", "320", "--no-progress"]
+    result = CliRunner().invoke(sekd, args + (["--model", model] if model else []))
     assert result.exit_code == 0, result.output
     with h5py.File(tmp_path / "f.h5") as f:
-        assert f.attrs["model_sha256"] == file_sha256(EMBEDDED_MODEL)
+        assert f.attrs["model_sha256"] == file_sha256(EMBEDDED_MODELS[model or DEFAULT_MODEL])
         assert f["1.ppm/keypoints"].shape[0] > 100
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--weights", "{own}"], "--model authors and --weights .* both name the SEKD model; give one of them"),
+    (["--feature", "sift"], "--model authors selects a SEKD model; --feature sift does not use it"),
+])
+def test_model_option_conflicts_are_one_error_line(tmp_path, one_image, extra, message):
+    args = ["extract", str(one_image), "-o", str(tmp_path / "f.h5"), "--model", "authors"]
+    result = CliRunner().invoke(sekd, args + [e.format(own=OWN) for e in extra])
+    assert result.exit_code == 1
+    assert len(result.output.strip().splitlines()) == 1 and re.match(f"Error: {message}", result.output), result.output
+    assert not (tmp_path / "f.h5").exists()
+
+
+def test_bench_methods_name_the_embedded_models():
+    from sekd_sfm.bench.methods import parse_method
+
+    assert parse_method("sekd:own").weights == str(OWN) and parse_method("sekd:own").label == "sekd_own"
+    assert parse_method("ref=sekd:authors").weights == str(AUTHORS)
+    assert parse_method("sekd").weights is None  # the default, resolved when loaded
+
+
+@pytest.mark.parametrize("command", [["reconstruct", "{images}", "-o", "{tmp}/out"], ["relpose", "{img}", "{img}"],
+                                     ["bench", "pose", "-o", "{tmp}/b"], ["bench", "homography", "-o", "{tmp}/b"]])
+def test_every_model_command_takes_model_and_refuses_both(tmp_path, one_image, command):
+    fill = {"images": one_image, "tmp": tmp_path, "img": one_image / "1.ppm"}
+    args = [a.format(**fill) for a in command] + ["--model", "own", "--weights", str(AUTHORS)]
+    result = CliRunner().invoke(sekd, args)
+    assert result.exit_code == 1 and result.output.startswith("Error: --model own and --weights"), result.output
+    assert "--model [own|authors]" in CliRunner().invoke(sekd, command[:2] + ["--help"]).output
 
 
 def test_training_wall_time_sums_each_process_run(tmp_path):
@@ -65,21 +158,23 @@ def test_training_wall_time_sums_each_process_run(tmp_path):
     assert ship.training_wall_seconds(log, until="never logged") == 45 * 60
 
 
-def test_ship_copies_the_best_model_and_writes_its_card(tmp_path, shared):
-    dest = ship.ship_model(RUN, tmp_path / "m.pth", tmp_path / "card.md", guard=False)
+def test_ship_copies_the_best_model_and_writes_its_card(tmp_path, shared, run):
+    dest = ship.ship_model(run, tmp_path / "m.pth", tmp_path / "card.md", guard=False)
     net, info = load_model(dest)
-    best = load_model(RUN / "best.pth")[0].state_dict()
+    best = load_model(run / "best.pth")[0].state_dict()
     assert all((net.state_dict()[k] == v).all() for k, v in best.items())
     assert info.meta["data"] == "../shared/data/train/coco" and info.meta["wall_seconds"] > 0
     card = (tmp_path / "card.md").read_text()
     assert file_sha256(dest, 64) in card and "--schedule cpu --seed 0" in card
 
 
-def test_ship_refuses_a_model_over_the_size_limit(tmp_path, monkeypatch):
+def test_ship_refuses_a_model_over_the_size_limit(tmp_path, monkeypatch, run):
     monkeypatch.setattr(ship, "MAX_BYTES", 1000)
+    out = tmp_path / "out"
+    out.mkdir()
     with pytest.raises(SekdError, match="over 1000"):
-        ship.ship_model(RUN, tmp_path / "m.pth")
-    assert not (tmp_path / "m.pth").exists() and not list(Path(tmp_path).iterdir())
+        ship.ship_model(run, out / "m.pth")
+    assert not list(out.iterdir())
 
 
 @pytest.mark.parametrize("path, shown", [
@@ -91,7 +186,7 @@ def test_card_shows_shared_paths_from_any_machine_as_dot_dot_shared(path, shown)
     assert ship._display_path(path) == shown
 
 
-def test_ship_auto_takes_the_best_validated_step_that_passes_the_guard(monkeypatch):
+def test_ship_auto_takes_the_best_validated_step_that_passes_the_guard(monkeypatch, run):
     errors = {"r2_d": 3.5, "r1_d": float("nan"), "r0_d": 2.0}  # validation ranks r2_d > r1_d > r0_d
     tried = []
 
@@ -100,11 +195,11 @@ def test_ship_auto_takes_the_best_validated_step_that_passes_the_guard(monkeypat
         return errors[Path(weights).stem]
 
     monkeypatch.setattr(ship, "graffiti_corner_error", fake_guard)
-    assert ship.best_guarded_step(RUN) == ("models/r0_d.pth", 2.0)
+    assert ship.best_guarded_step(run) == ("models/r0_d.pth", 2.0)
     assert tried == ["r2_d", "r1_d", "r0_d"]
     errors["r0_d"] = 3.0
     with pytest.raises(SekdError, match="no step model passes the regression guard .*r0_d 3.00 px"):
-        ship.best_guarded_step(RUN)
+        ship.best_guarded_step(run)
 
 
 def test_card_names_the_run_a_forked_run_came_from():

@@ -109,24 +109,37 @@ def test_resume_after_crash_before_merge(images, tmp_path, monkeypatch, shared):
 
 
 def test_kill_9_at_any_moment_leaves_a_readable_file(tmp_path):
+    """Killed while parts are being written (checkpoint_seconds=0: one chunk per image) or while merging."""
     images = write_images(tmp_path / "im", [f"{i:03d}.png" for i in range(40)], shape=(240, 320))
     out = tmp_path / "f.h5"
     script = ("from sekd_sfm.extract import extract_features; from sekd_sfm.features import FeatureConfig; "
               f"extract_features({str(images)!r}, {str(out)!r}, FeatureConfig(feature='sift', max_keypoints=300), "
               "progress=False, checkpoint_seconds=0)")
     proc = subprocess.Popen([sys.executable, "-c", script])
+    parts = tmp_path / "f.h5.parts"
     deadline = time.monotonic() + 60
-    while not (out.exists() and ff.list_keys(out)) and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.05)
+    while not (parts.is_dir() and len(list(parts.glob("*.npz"))) >= 5) and time.monotonic() < deadline \
+            and proc.poll() is None:
+        time.sleep(0.01)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     first = ff.list_keys(out)  # opens after the kill
-    extract_features(images, out, FeatureConfig(feature="sift", max_keypoints=300), progress=False)
+    saved = ff.PartStore(out).keys()
+    calls = []
+    import sekd_sfm.extract as ex
+    real = ex._features_of
+    ex._features_of = lambda *a: calls.append(1) or real(*a)
+    try:
+        extract_features(images, out, FeatureConfig(feature="sift", max_keypoints=300), progress=False)
+    finally:
+        ex._features_of = real
+    assert len(calls) == 40 - len(set(first) | saved)  # saved images are not recomputed
     clean = extract_features(images, tmp_path / "clean.h5", FeatureConfig(feature="sift", max_keypoints=300), progress=False)
     assert ff.list_keys(out) == ff.list_keys(clean) == [f"{i:03d}.png" for i in range(40)]
     assert set(first) <= set(ff.list_keys(out))
-    for key in ("000.png", "039.png"):
-        assert np.array_equal(ff.read_features(out, key)["descriptors"], ff.read_features(clean, key)["descriptors"])
+    for key in ff.list_keys(out):
+        a, b = ff.read_features(out, key), ff.read_features(clean, key)
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
 
 
 def test_corrupt_image_skipped_and_counted(images, tmp_path, shared):
@@ -166,8 +179,8 @@ def test_cli_extract_and_errors(images, tmp_path, shared):
     assert len(ff.list_keys(out)) == 3
     result = runner.invoke(sekd, ["extract", str(tmp_path / "nowhere"), "-o", str(out)])
     assert result.exit_code == 1
-    assert result.output.strip().splitlines() == [f"Error: {tmp_path / 'nowhere'}: image folder not found; "
-                                                  "give a folder that contains images"]
+    assert result.output.strip().splitlines() == [(f"Error: {tmp_path / 'nowhere'}: image folder not found; "
+                                                   "give a folder that contains images")]
     result = runner.invoke(sekd, ["extract", str(images), "-o", str(out), "--weights", str(tmp_path / "no.pth")])
     assert result.exit_code == 1 and "weights file not found" in result.output
 
@@ -185,16 +198,21 @@ def test_sigterm_stops_cleanly_and_the_next_run_completes(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "sekd_sfm.cli.main", "extract", str(images), "-o", str(out),
                              "--feature", "sift", "--no-progress"], stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
-    while not (out.parent / "f.h5.parts").exists() and time.monotonic() < deadline and proc.poll() is None:
+    lock = tmp_path / "f.h5.lock"  # holds the PID once the run has started
+    while not (lock.exists() and lock.read_text().strip()) and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.02)
+    time.sleep(0.3)
     proc.send_signal(signal.SIGTERM)
     _, stderr = proc.communicate(timeout=60)
-    if proc.returncode != 0:  # stopped mid-run: one error line saying how to resume, parts merged
-        assert proc.returncode == 1 and "interrupted" in stderr and "run the same command again" in stderr
-        assert not (tmp_path / "f.h5.parts").exists()
-    saved = ff.list_keys(out)
+    if proc.returncode != 0:  # stopped mid-run or mid-merge: one error line saying how to resume
+        errors = [line for line in stderr.splitlines() if line.startswith("Error:")]
+        assert proc.returncode == 1 and len(errors) == 1, stderr
+        assert "interrupted" in errors[0] and "run the same command again" in errors[0]
+        assert "Traceback" not in stderr
+    saved = ff.list_keys(out)  # opens
     extract_features(images, out, FeatureConfig(feature="sift"), progress=False)
     assert set(saved) <= set(ff.list_keys(out)) and len(ff.list_keys(out)) == 60
+    assert not (tmp_path / "f.h5.parts").exists()
 
 
 def test_summary_line_counts_images_merged_at_checkpoints(tmp_path, caplog):

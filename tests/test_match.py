@@ -148,9 +148,9 @@ def write_features(path, images: dict, feature="sift", dim=None, dtype=None, dec
 def small(tmp_path):
     """Features of three images (two names with spaces / folders) and all pairs."""
     kp = lambda n: np.zeros((n, 2), np.float32)
-    images = {"a.jpg": (kp(5), A), "dir/b c.jpg": (kp(5), B), "z.jpg": (kp(0), A[:0])}
+    images = {"a.jpg": (kp(5), A), "dir/bü.jpg": (kp(5), B), "z.jpg": (kp(0), A[:0])}
     features = write_features(tmp_path / "features.h5", images, feature="kaze")
-    pairs = write_pairs([("a.jpg", "dir/b c.jpg"), ("z.jpg", "a.jpg"), ("dir/b c.jpg", "z.jpg")], tmp_path / "p.txt")
+    pairs = write_pairs([("a.jpg", "dir/bü.jpg"), ("z.jpg", "a.jpg"), ("dir/bü.jpg", "z.jpg")], tmp_path / "p.txt")
     return features, pairs
 
 
@@ -158,29 +158,29 @@ def test_match_file_layout_and_exact_matches(small, tmp_path):
     features, pairs = small
     out = match_features(features, pairs, tmp_path / "m.h5", MatchConfig(mode="both", ratio=0.8), progress=False)
     with h5py.File(out) as f:
-        group = f["a.jpg"]["dir/b c.jpg"]  # nested name0 -> name1, '/' kept as a folder
+        group = f["a.jpg"]["dir/bü.jpg"]  # nested name0 -> name1, '/' kept as a folder
         assert group["matches0"].dtype == np.int32 and group["matching_scores0"].dtype == np.float32
         assert group["matches0"][()].tolist() == [-1, 1, 2, -1, 0]
-        assert group.attrs["name0"] == "a.jpg" and group.attrs["name1"] == "dir/b c.jpg"
+        assert group.attrs["name0"] == "a.jpg" and group.attrs["name1"] == "dir/bü.jpg"
         assert f["z.jpg"]["a.jpg"]["matches0"].shape == (0,)
-        assert f["dir/b c.jpg"]["z.jpg"]["matches0"][()].tolist() == [-1] * 5
+        assert f["dir/bü.jpg"]["z.jpg"]["matches0"][()].tolist() == [-1] * 5
         assert f.attrs["format"] == mf.FORMAT and f.attrs["feature_type"] == "kaze"
         config = json.loads(f.attrs["config"])
         assert config == {"mode": "both", "ratio": 0.8, "metric": "l2", "rootsift": False}
         assert "torch" in json.loads(f.attrs["versions"])
-    assert mf.list_pairs(out) == [("a.jpg", "dir/b c.jpg"), ("dir/b c.jpg", "z.jpg"), ("z.jpg", "a.jpg")]
-    idx, scores = mf.read_matches(out, "dir/b c.jpg", "a.jpg")  # the reverse order works too
+    assert mf.list_pairs(out) == [("a.jpg", "dir/bü.jpg"), ("dir/bü.jpg", "z.jpg"), ("z.jpg", "a.jpg")]
+    idx, scores = mf.read_matches(out, "dir/bü.jpg", "a.jpg")  # the reverse order works too
     assert idx.tolist() == [[1, 1], [2, 2], [0, 4]] and len(scores) == 3
     assert not (tmp_path / "m.h5.parts").exists() and not (tmp_path / "m.h5.tmp").exists()
 
 
-def test_names_that_hloc_would_collide_stay_apart(tmp_path):
+def test_names_that_hloc_would_collide_are_refused(tmp_path):
     kp = np.zeros((5, 2), np.float32)
     images = {"a/b.jpg": (kp, A), "a-b.jpg": (kp, A), "c.jpg": (kp, B)}
     features = write_features(tmp_path / "f.h5", images)
     pairs = write_pairs([("a/b.jpg", "c.jpg"), ("a-b.jpg", "c.jpg")], tmp_path / "p.txt")
-    out = match_features(features, pairs, tmp_path / "m.h5", MatchConfig(mode="mnn"), progress=False)
-    assert mf.list_pairs(out) == [("a-b.jpg", "c.jpg"), ("a/b.jpg", "c.jpg")]
+    with pytest.raises(SekdError, match="share hloc's key"):  # hloc's names_to_pair maps both to a-b.jpg/c.jpg
+        match_features(features, pairs, tmp_path / "m.h5", MatchConfig(mode="mnn"), progress=False)
 
 
 def test_binary_features_use_hamming(tmp_path):
@@ -210,20 +210,20 @@ def test_resume_merges_parts_of_a_killed_run(small, tmp_path):
     out = tmp_path / "m.h5"
     match_features(features, pairs, out, MatchConfig(ratio=0.8), progress=False)
     with h5py.File(out, "a") as f:  # forget one pair, as if the run had stopped before it
-        del f["a.jpg"]["dir/b c.jpg"]
+        del f["a.jpg"]["dir/bü.jpg"]
     # A part left by the killed run (content deliberately different from what matching would give).
     marker = {"matches0": np.array([4, 3, 2, 1, 0], np.int32), "matching_scores0": np.full(5, 0.5, np.float32)}
-    ff.PartStore(out).save(mf.pair_key("a.jpg", "dir/b c.jpg"), marker)
+    ff.PartStore(out).save(mf.pair_key("a.jpg", "dir/bü.jpg"), marker)
     match_features(features, pairs, out, MatchConfig(ratio=0.8), progress=False)
     with h5py.File(out) as f:
-        assert f["a.jpg"]["dir/b c.jpg"]["matches0"][()].tolist() == [4, 3, 2, 1, 0]  # reused, not recomputed
+        assert f["a.jpg"]["dir/bü.jpg"]["matches0"][()].tolist() == [4, 3, 2, 1, 0]  # reused, not recomputed
     assert len(mf.list_pairs(out)) == 3
 
 
 def test_refuses_pairs_naming_images_without_features(small, tmp_path):
     features, _ = small
-    pairs = write_pairs([("a.jpg", "ghost 1.jpg"), ("ghost 2.jpg", "z.jpg")], tmp_path / "bad.txt")
-    with pytest.raises(SekdError, match=r"has no features for 2 image\(s\) named in .*bad.txt: ghost 1.jpg, ghost 2.jpg"):
+    pairs = write_pairs([("a.jpg", "ghost_1.jpg"), ("ghost_2.jpg", "z.jpg")], tmp_path / "bad.txt")
+    with pytest.raises(SekdError, match=r"has no features for 2 image\(s\) named in .*bad.txt: ghost_1.jpg, ghost_2.jpg"):
         match_features(features, pairs, tmp_path / "m.h5", progress=False)
     assert not (tmp_path / "m.h5").exists()
 
@@ -241,7 +241,7 @@ def test_refuses_adding_other_feature_type_or_config(small, tmp_path):
     features, pairs = small
     out = match_features(features, pairs, tmp_path / "m.h5", MatchConfig(ratio=0.8), progress=False)
     kp = np.zeros((3, 2), np.float32)
-    orb = write_features(tmp_path / "orb.h5", {"a.jpg": (kp, X), "dir/b c.jpg": (kp, X), "z.jpg": (kp, X)},
+    orb = write_features(tmp_path / "orb.h5", {"a.jpg": (kp, X), "dir/bü.jpg": (kp, X), "z.jpg": (kp, X)},
                          feature="orb")
     with pytest.raises(SekdError, match="holds matches of kaze features.*feature types cannot be mixed"):
         match_features(orb, pairs, out, progress=False)
@@ -290,7 +290,7 @@ def test_cli_mixed_feature_types_one_line_error(small, tmp_path):
     features, pairs = small
     run_cli("match", features, pairs, "-o", tmp_path / "m.h5")
     kp = np.zeros((3, 2), np.float32)
-    orb = write_features(tmp_path / "orb.h5", {"a.jpg": (kp, X), "dir/b c.jpg": (kp, X), "z.jpg": (kp, X)},
+    orb = write_features(tmp_path / "orb.h5", {"a.jpg": (kp, X), "dir/bü.jpg": (kp, X), "z.jpg": (kp, X)},
                          feature="orb")
     result, errors = run_cli("match", orb, pairs, "-o", tmp_path / "m.h5")
     assert result.exit_code == 1 and len(errors) == 1 and "feature types cannot be mixed" in errors[0]

@@ -56,7 +56,7 @@ def test_missing_embedded_model_says_to_pass_weights(monkeypatch, tmp_path):
     from sekd_sfm import weights
     from sekd_sfm.errors import SekdError
 
-    monkeypatch.setattr(weights, "EMBEDDED_MODEL", tmp_path / "absent.pth")
+    monkeypatch.setitem(weights.EMBEDDED_MODELS, weights.DEFAULT_MODEL, tmp_path / "absent.pth")
     with pytest.raises(SekdError, match="--weights"):
         load_model(None)
 

@@ -10,7 +10,7 @@ from sekd_sfm.cli.main import sekd
 
 from sekd_sfm import featurefile as ff
 from sekd_sfm.bench.strecha import rotation_angle_deg
-from sekd_sfm.errors import Interrupted, SekdError
+from sekd_sfm.errors import SekdError
 from sekd_sfm.extract import describe_config
 from sekd_sfm.features import FeatureConfig, build_extractor
 from sekd_sfm.sfm.colmap import open_database, require_pycolmap, set_options
@@ -136,7 +136,7 @@ def scene_points(rng, n=300):
     return points, rng.uniform(0, 255, (n, 128))
 
 
-SIFT = FeatureConfig(feature="sift")
+SIFT = FeatureConfig(feature="sift", resize_max=1600)  # the CLI default of `reconstruct`
 CALIBRATED = CameraConfig(model="SIMPLE_PINHOLE", mode="single", params=f"{F},{W / 2},{H / 2}")
 
 
@@ -145,7 +145,7 @@ def synthetic(tmp_path_factory):
     """Eight calibrated views on an 80 degree arc around 300 points; reconstructed once."""
     rng = np.random.default_rng(7)
     points, descriptors = scene_points(rng)
-    views = {f"view {i:02d}.png": v for i, v in enumerate(synthetic_views(rng, points, descriptors, arc(8)))}
+    views = {f"view_{i:02d}.png": v for i, v in enumerate(synthetic_views(rng, points, descriptors, arc(8)))}
     images, out = write_scene(tmp_path_factory.mktemp("synthetic"), views, SIFT)
     model = reconstruct(images, out, ReconstructConfig(features=SIFT, camera=CALIBRATED), progress=False)
     return views, images, out, model
@@ -196,7 +196,7 @@ def test_export_text_and_ply(synthetic, tmp_path):
     result = runner.invoke(sekd, ["-q", "export", str(model), "-o", str(tmp_path / "text")])
     assert result.exit_code == 0, result.output
     text = (tmp_path / "text" / "images.txt").read_text()
-    assert "view 00.png" in text and (tmp_path / "text" / "points3D.txt").is_file()
+    assert "view_00.png" in text and (tmp_path / "text" / "points3D.txt").is_file()
     result = runner.invoke(sekd, ["-q", "export", str(model), "-o", str(tmp_path / "cloud.ply"), "--format", "ply"])
     assert result.exit_code == 0, result.output
     header = (tmp_path / "cloud.ply").read_bytes()[:300].decode("ascii", "replace")
@@ -232,22 +232,32 @@ def run_cli(images, out, *options):
     return result, errors
 
 
-def test_two_groups_give_submodels_error(tmp_path):
+def test_two_groups_write_two_models_and_list_the_stray_photo(tmp_path, caplog):
     rng = np.random.default_rng(5)
     views = {}
-    for group in "ab":  # two scenes with nothing in common
+    for group, n in (("a", 6), ("b", 5)):  # two scenes with nothing in common
         points, descriptors = scene_points(rng, 250)
-        for i, view in enumerate(synthetic_views(rng, points, descriptors, arc(5, span_deg=60))):
+        for i, view in enumerate(synthetic_views(rng, points, descriptors, arc(n, span_deg=60))):
             views[f"{group}{i}.png"] = view
+    points, descriptors = scene_points(rng, 150)  # a photo of something else: it fits no model
+    views["stray.png"] = synthetic_views(rng, points, descriptors, arc(1))[0]
     images, out = write_scene(tmp_path, views, SIFT)
+    (out / "submodels" / "1").mkdir(parents=True)  # the layout of older versions: replaced
     result, errors = run_cli(images, out, "--mapper", "min_model_size=3")
-    assert result.exit_code == 1 and errors == ["Error: 2 sub-models: the images split into groups the mapper "
-                                                "could not join; the largest is the main model"]
-    assert "model 0: 5 images" in result.output and "(no verified pair links them)" in result.output
-    assert (out / "database.db").is_file() and (out / "model").is_dir() and (out / "submodels" / "1").is_dir()
+    assert result.exit_code == 0 and errors == [], result.output
+    assert "2 models: the images split into groups the mapper could not join" in caplog.text
+    assert "(no verified pair links them)" in caplog.text and "models             2" in result.output
+    assert pycolmap.Reconstruction(str(out / "model")).num_reg_images() == 6
+    assert pycolmap.Reconstruction(str(out / "models" / "1")).num_reg_images() == 5
+    assert not (out / "submodels").exists()
     stats = json.loads((out / "stats.json").read_text())
-    assert stats["status"] == "failed" and stats["failure"].startswith("2 sub-models")
-    assert len(stats["models"]) == 2 and stats["model"]["registered_images"] == 5
+    assert stats["status"] == "ok" and stats["split"].startswith("2 models")
+    assert [m["images"] for m in stats["models"]] == [[f"a{i}.png" for i in range(6)], [f"b{i}.png" for i in range(5)]]
+    assert [u["name"] for u in stats["unregistered"]] == ["stray.png"]
+    stray = stats["unregistered"][0]
+    assert stray["verified_pairs"] == 0 and stray["keypoints"] == len(views["stray.png"]["keypoints"])
+    assert stray["best_inliers"] < 15 and all(p["inliers"] < 15 for p in stray["best_pairs"])
+    assert "not registered     stray.png" in result.output
 
 
 def test_unrelated_images_give_too_few_matches(tmp_path):
@@ -351,16 +361,96 @@ def test_sacre_coeur_rerun_reuses_features_and_matches(sacre_coeur):
     assert result.exit_code == 1 and "was made with a different configuration" in result.output
 
 
-def test_ctrl_c_while_mapping_keeps_the_database_and_says_how_to_resume(synthetic, tmp_path, monkeypatch):
+def test_run_mapper_in_a_child_gives_the_same_model(synthetic, tmp_path):
+    _, images, out, _ = synthetic
     database = tmp_path / "database.db"
-    database.write_bytes((synthetic[2] / "database.db").read_bytes())
+    database.write_bytes((out / "database.db").read_bytes())
+    models = run_mapper(database, images, mapper_options(), progress=False, log_prefix=tmp_path / "log.")
+    assert len(models) == 1 and models[0].num_reg_images() == 8
+    expected = pycolmap.Reconstruction(str(out / "model"))
+    assert models[0].num_points3D() == expected.num_points3D()  # same seed, one thread: the same model
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("log."))[:1] == ["database.db"]
+    assert not list(tmp_path.glob("mapping-*"))  # scratch folder removed
+    assert "Keeping successful reconstruction" in "".join(p.read_text() for p in tmp_path.glob("log.*"))
 
-    def interrupted(*args, **kwargs):  # what pycolmap raises when Ctrl-C stops its mapper
-        raise KeyboardInterrupt
 
-    monkeypatch.setattr(pycolmap, "incremental_mapping", interrupted)
-    with pytest.raises(Interrupted, match="database.db .* is kept; run the same command again"):
-        run_mapper(database, synthetic[1], progress=False)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["database.db"]  # scratch folder removed
-    with open_database(database) as db:
-        assert db.num_images() == 8
+def test_leftovers_of_a_killed_run_are_removed_and_the_folder_is_locked(synthetic, tmp_path):
+    from sekd_sfm.locking import exclusive_lock
+
+    _, images, out, _ = synthetic
+    work = tmp_path / "out"
+    work.mkdir()
+    for name in ("features.h5", "pairs.txt", "matches.h5"):
+        (work / name).write_bytes((out / name).read_bytes())
+    (work / "mapping-k1ll3d" / "0").mkdir(parents=True)  # what kill -9 during mapping leaves
+    (work / "colmap.log.20260101-120000.4242").write_text("I20260101 half a log")
+    reconstruct(images, work, ReconstructConfig(features=SIFT, camera=CALIBRATED), progress=False)
+    assert not list(work.glob("mapping-*")) and not list(work.glob("colmap.log.*"))
+    assert "half a log" not in (work / "colmap.log").read_text()
+    busy = r"this reconstruction folder is in use by another sekd process \(PID"
+    # Held here as another process running there would hold it.
+    with exclusive_lock(work, what="reconstruction folder"), pytest.raises(SekdError, match=busy):
+        reconstruct(images, work, ReconstructConfig(features=SIFT, camera=CALIBRATED), progress=False)
+
+
+# ----------------------------------------------------------------------------- existing files
+
+def test_existing_features_and_matches_are_used_in_place(synthetic, tmp_path):
+    _, images, first, _ = synthetic
+    stamps = {n: (first / n).stat().st_mtime_ns for n in ("features.h5", "matches.h5")}
+    out = tmp_path / "out"
+    result, errors = run_cli(images, out, "--features", str(first / "features.h5"), "--matches",
+                             str(first / "matches.h5"))
+    assert result.exit_code == 0 and errors == [], result.output
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["model"]["registered_images"] == 8 and stats["matches"]["verified_pairs"] == 28
+    assert stats["inputs"] == {"features": str(first / "features.h5"), "matches": str(first / "matches.h5")}
+    assert not (out / "features.h5").exists() and not (out / "matches.h5").exists()
+    assert (out / "pairs.txt").read_text().count("\n") == 28  # the pairs the match file holds
+    assert stamps == {n: (first / n).stat().st_mtime_ns for n in stamps}  # read, never written
+
+
+def test_hloc_feature_file_is_matched_and_mapped(synthetic, tmp_path):
+    """A feature file as hloc writes it (no sekd attributes, D x N descriptors in float16)."""
+    _, images, first, _ = synthetic
+    hloc = tmp_path / "feats-hloc.h5"
+    with h5py.File(first / "features.h5") as src, h5py.File(hloc, "w") as dst:
+        for name in ff.list_keys(first / "features.h5"):
+            group = dst.create_group(name)
+            group["keypoints"] = src[name]["keypoints"][()]
+            group["descriptors"] = src[name]["descriptors"][()].astype(np.float16)
+            group["scores"] = src[name]["scores"][()]
+            group["image_size"] = src[name]["image_size"][()]
+    result, errors = run_cli(images, tmp_path / "out", "--features", str(hloc))
+    assert result.exit_code == 0 and errors == [], result.output
+    assert json.loads((tmp_path / "out" / "stats.json").read_text())["model"]["registered_images"] == 8
+    assert (tmp_path / "out" / "matches.h5").is_file() and not (tmp_path / "out" / "features.h5").exists()
+
+
+def test_hloc_match_file_with_its_pairs_file(synthetic, tmp_path):
+    """A match file as hloc writes it: '<name0>/<name1>' groups, no attributes; pairs from hloc's pairs file."""
+    _, images, first, _ = synthetic
+    pairs = [tuple(line.split()) for line in (first / "pairs.txt").read_text().splitlines()]
+    hloc = tmp_path / "matches-hloc.h5"
+    with h5py.File(first / "matches.h5") as src, h5py.File(hloc, "w") as dst:
+        for name0, name1 in pairs:
+            group = dst.create_group(f"{name0}/{name1}")
+            group["matches0"] = src[f"{name0}/{name1}"]["matches0"][()]
+            group["matching_scores0"] = src[f"{name0}/{name1}"]["matching_scores0"][()].astype(np.float16)
+    (tmp_path / "pairs-hloc.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs[:20]))
+    result, errors = run_cli(images, tmp_path / "out", "--features", str(first / "features.h5"),
+                             "--matches", str(hloc), "--pairs-file", str(tmp_path / "pairs-hloc.txt"))
+    assert result.exit_code == 0 and errors == [], result.output
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert stats["model"]["registered_images"] == 8 and stats["matches"]["pairs_with_matches"] == 20
+    assert stats["matching"] == {"source": str(hloc)}  # no configuration to record: not a sekd file
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--matches", "M.h5"], "--matches M.h5: also give the feature file these matches index (--features)"),
+    (["--features", "missing.h5"], "--features missing.h5: no such file"),
+])
+def test_bad_existing_files_are_one_error(tmp_path, args, message):
+    (tmp_path / "images").mkdir()
+    result, errors = run_cli(tmp_path / "images", tmp_path / "out", *args)
+    assert result.exit_code == 1 and len(errors) == 1 and message in errors[0], result.output

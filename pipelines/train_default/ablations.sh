@@ -1,17 +1,20 @@
 #!/usr/bin/env bash
 # The paper's Table 4 ablations with our own training: the default model's recipe (the config
-# of the run folder BASE, default run_v3: the embedded model's recipe, seed 0, the 256 shared COCO photos)
+# of the run folder BASE, default runs/default from train.sh: the embedded model's recipe, seed 0,
+# the 256 shared COCO photos)
 # with one switch on each, for ROUNDS rounds (default 2: ~1 h each on 2 cores), then
 # `sekd bench homography` of each ablation's best step against the baseline's best step
 # within the same rounds (python -m sekd_sfm.train.ablation chooses and checks them).
-# Usage: [ROUNDS=2] [BASE=run_v3] [OUT=bench-ablations] pipelines/train_default/ablations.sh [SWITCH ...]
+# Usage: [ROUNDS=2] [BASE=default] [OUT=bench-ablations] pipelines/train_default/ablations.sh [SWITCH ...]
 #        (default: all four switches, in order; extra sekd evolve options after `--`)
-# Resumable: run it again to continue each run where it stopped. Run folders: ablations/<switch>/.
+# Resumable: run it again to continue each run where it stopped. Run folders: runs/ablations/<switch>/
+# beside the checkout (gitignored; SEKD_RUNS moves runs/). BASE: a run name or path, as RUN in train.sh.
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
-export SEKD_SHARED=$(cd "${SEKD_SHARED:-$HERE/../../../shared}" && pwd)
+source "$HERE/_run_dir.sh"
+export SEKD_SHARED=$(cd "${SEKD_SHARED:-$ROOT/../shared}" && pwd)
 ROUNDS=${ROUNDS:-2}
-BASE=$HERE/${BASE:-run_v3}
+BASE=$(run_dir "${BASE:-default}")
 OUT=${OUT:-bench-ablations}
 SWITCHES=()
 while [ $# -gt 0 ] && [ "$1" != "--" ]; do SWITCHES+=("$1"); shift; done
@@ -19,7 +22,7 @@ while [ $# -gt 0 ] && [ "$1" != "--" ]; do SWITCHES+=("$1"); shift; done
 [ ${#SWITCHES[@]} -gt 0 ] || SWITCHES=(no_affine no_desc_dis no_desc_rep no_det_rep)
 RUNS=()
 for switch in "${SWITCHES[@]}"; do
-  RUN=$HERE/ablations/$switch
+  RUN=$RUNS/ablations/$switch
   RUNS+=("$RUN")
   if [ -f "$RUN/state.json" ]; then
     sekd evolve --out "$RUN" --resume --no-progress "$@"

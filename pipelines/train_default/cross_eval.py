@@ -4,7 +4,7 @@ Scores every (detector, descriptor) combination of two checkpoints with the trai
 validation (the shared homography sequences at 320 px, top 500 keypoints, mutual NN):
 keypoints from one network's probability map, descriptors sampled from the other's map.
 
-    python pipelines/train_default/cross_eval.py sekd_sfm/models/sekd_default.pth ../shared/weights/sekd/sekd.pth
+    python pipelines/train_default/cross_eval.py sekd_sfm/models/sekd_own.pth ../shared/weights/sekd/sekd.pth
 
 Prints a Markdown table of MMA@3 (overall / i / v) and Avg.HA@1:10 per combination.
 """

@@ -6,7 +6,7 @@ of (b) are compared on exactly the same model, labels and pairs without relabell
 After every epoch: the run's validation (MMA@3, Avg.HA, ``desc_cos``) printed as one JSON
 line and the model saved as ``OUT/e<N>.pth`` (for ``sekd bench homography -m x=sekd:OUT/e3.pth``).
 
-    python pipelines/train_default/desc_step.py pipelines/train_default/run_v2 r0_d r1_a /tmp/spread \\
+    python pipelines/train_default/desc_step.py runs/floor r0_d r1_a /tmp/spread \\
         --epochs 3 spread_weight=1
 """
 from __future__ import annotations

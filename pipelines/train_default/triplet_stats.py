@@ -7,12 +7,12 @@ distance to a random other keypoint, the share of keypoints whose positive is ne
 their hardest negative, the ratio-form loss, and the mean pairwise cosine of the
 descriptors (near 1: collapsed).
 
-    python pipelines/train_default/triplet_stats.py pipelines/train_default/run_v2 r1_a \\
-        ../shared/weights/sekd/sekd.pth pipelines/train_default/run_v2/models/r0_d.pth
+    python pipelines/train_default/triplet_stats.py runs/floor r1_a \\
+        ../shared/weights/sekd/sekd.pth runs/floor/models/r0_d.pth
 
 A descriptor the loss can train has positives nearer than hardest negatives for many
 keypoints; when almost none are, the ratio (and margin) loss is lowest for descriptors that
-shrink every distance alike: they collapse (docs/training.md, session 4).
+shrink every distance alike: they collapse (docs/experiments.md, finding 3).
 """
 from __future__ import annotations
 

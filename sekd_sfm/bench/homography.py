@@ -1,4 +1,4 @@
-"""``sekd bench homography``: the paper's homography-estimation evaluation (SPEC.md §3, Table 2, Fig. 4).
+"""``sekd bench homography``: the paper's homography-estimation evaluation (docs/method.md; paper Table 2, Fig. 4).
 
 Per sequence, pairs (1, k): top-k keypoints per image, mutual-nearest-neighbour matches,
 ``cv2.findHomography(RANSAC)`` with OpenCV's defaults, mean corner error. Images are

@@ -1,7 +1,8 @@
 """The methods a benchmark compares, named on the command line.
 
 ``sift``, ``orb``, ``akaze``, ``brisk``, ``kaze``: OpenCV. ``disk``, ``aliked``, ``xfeat``:
-kornia with local weights. ``sekd``: the embedded model; ``sekd:PATH``: SEKD with the
+kornia with local weights. ``sekd``: the default embedded model; ``sekd:own``,
+``sekd:authors``: the embedded model of that name (``--model``); ``sekd:PATH``: SEKD with the
 checkpoint at PATH (labelled by the file name, e.g. ``sekd:.../sekd_wo_affine.pth`` ->
 ``sekd_wo_affine``); ``LABEL=sekd:PATH`` sets the label explicitly.
 """
@@ -21,7 +22,7 @@ from ..extract import extract_features
 from ..features import FEATURE_TYPES, FeatureConfig
 from ..features.peers import PEER_FEATURES, peer_weights_path
 from ..inference import SEKDConfig
-from ..weights import file_sha256, resolve_weights_path
+from ..weights import EMBEDDED_MODELS, file_sha256, resolve_weights_path
 
 logger = logging.getLogger("sekd")
 
@@ -47,6 +48,8 @@ def parse_method(text: str) -> Method:
     """Parse ``[LABEL=]FEATURE[:WEIGHTS]``; SekdError for an unknown feature."""
     label, _, spec = text.rpartition("=") if "=" in text.split(":", 1)[0] else ("", "", text)
     feature, _, weights = spec.partition(":")
+    if feature == "sekd" and weights in EMBEDDED_MODELS:  # sekd:own, sekd:authors = the embedded models
+        weights = str(EMBEDDED_MODELS[weights])
     if feature not in FEATURE_TYPES:
         raise SekdError(f"unknown method {text!r}: the feature must be one of {', '.join(FEATURE_TYPES)}")
     if not label:

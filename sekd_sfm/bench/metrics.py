@@ -1,4 +1,4 @@
-"""Benchmark metrics with hand-checkable definitions (SPEC.md §3).
+"""Benchmark metrics with hand-checkable definitions (docs/method.md, Evaluation protocols).
 
 All pixel coordinates use the OpenCV convention (integer = pixel centre).
 """

@@ -1,6 +1,6 @@
 """``sekd bench pose``: relative pose on every image pair of scenes with ground-truth cameras.
 
-Protocol (SPEC.md §3, the IMC stereo task the paper uses): up to 2,000 keypoints per image,
+Protocol (docs/method.md, the IMC stereo task the paper uses): up to 2,000 keypoints per image,
 ratio test (float descriptors, with the feature type's measured default ratio) or mutual
 nearest neighbours (binary), essential matrix by RANSAC on points normalised with the known
 intrinsics, ``cv2.recoverPose``; rotation error = angle of R_est R_gt^T, translation error

@@ -41,45 +41,69 @@ def homography_markdown(results: dict) -> str:
     return _method_table(results, title, columns, cells)
 
 
-def _distinct_colours(ax) -> None:
-    """20 distinct colours (the default cycle repeats after 10 methods)."""
-    import matplotlib.pyplot as plt
+# Okabe & Ito's colour-blind-safe palette (black first for contrast). Combined with line
+# styles and markers, so two methods never look alike even past 8 methods or in grey print.
+PALETTE = ("#000000", "#E69F00", "#56B4E9", "#009E73", "#D55E00", "#0072B2", "#CC79A7", "#F0E442")
+LINESTYLES = ("-", "--", "-.", ":")
+MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
 
-    ax.set_prop_cycle(color=plt.cm.tab20.colors)
+
+def line_style(index: int) -> dict:
+    """Matplotlib kwargs of the ``index``-th method: colour, line style, marker (32 distinct combinations)."""
+    colour = PALETTE[index % len(PALETTE)]
+    style = LINESTYLES[(index // len(PALETTE)) % len(LINESTYLES)]
+    marker = MARKERS[(index + index // len(PALETTE)) % len(MARKERS)]
+    return {"color": colour, "linestyle": style, "marker": marker, "ms": 4, "lw": 1.6}
+
+
+def _legend_below(fig, handles: list, labels: list[str], title: str | None = None) -> None:
+    """One legend for the figure, under the axes, so it never hides a curve."""
+    ncol = min(4 if len(labels) > 3 else 3, max(1, len(labels)))
+    fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=ncol, fontsize=8,
+               frameon=False, title=title, title_fontsize=8)
+
+
+def _save(fig, path: Path) -> Path:
+    fig.savefig(path, dpi=110, bbox_inches="tight")  # "tight" keeps the legend below the axes in the PNG
+    return path
 
 
 def plot_curves(results: dict, output: Path) -> list[Path]:
-    """homography_accuracy.png (overall / i / v, as the paper's Fig. 4) and mma.png."""
+    """homography_accuracy.png (overall / i / v, as the paper's Fig. 4) and mma.png; legends below the axes."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     methods = {k: v["summary"] for k, v in results["methods"].items() if "summary" in v}
+    styles = {label: line_style(i) for i, label in enumerate(methods)}
     fig, axes = plt.subplots(1, 3, figsize=(14, 4), sharey=True)
     for ax, subset, title in zip(axes, ("all", "i", "v"), ("Overall", "Illumination", "Viewpoint")):
-        _distinct_colours(ax)
         for label, s in methods.items():
             if s[f"pairs_{subset}"]:
-                ax.plot(THRESHOLDS, s[f"ha_{subset}"], marker="o", ms=3, label=f"{label} ({100 * s[f'avg_ha_{subset}']:.1f})")
+                ax.plot(THRESHOLDS, s[f"ha_{subset}"], **styles[label])
         ax.set(title=title, xlabel="corner error threshold (px)", ylim=(0, 1.02))
         ax.grid(alpha=0.3)
-        if ax.lines:
-            ax.legend(fontsize=7)
     axes[0].set_ylabel("homography accuracy")
+    # Avg.HA@1:10 overall / i / v in the legend: the numbers of the results table.
+    handles = [plt.Line2D([], [], **styles[label]) for label in methods]
+    pct = lambda v: "-" if v is None else f"{100 * v:.1f}"  # None: no pair of that subset (one sequence)
+    _legend_below(fig, handles, [f"{label} ({pct(s['avg_ha_all'])} / {pct(s['avg_ha_i'])} / "
+                                 f"{pct(s['avg_ha_v'])})" for label, s in methods.items()],
+                  "method (Avg.HA@1:10 overall / illumination / viewpoint, %)")
     paths = [output / "homography_accuracy.png", output / "mma.png"]
     fig.tight_layout()
-    fig.savefig(paths[0], dpi=110)
+    _save(fig, paths[0])
     plt.close(fig)
-    fig, ax = plt.subplots(figsize=(5, 4))
-    _distinct_colours(ax)
+    fig, ax = plt.subplots(figsize=(6, 4))
     for label, s in methods.items():
-        ax.plot(THRESHOLDS, s["mma"], marker="o", ms=3, label=label)
+        ax.plot(THRESHOLDS, s["mma"], **styles[label])
     ax.set(xlabel="threshold (px)", ylabel="mean matching accuracy", ylim=(0, 1.02))
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    _legend_below(fig, handles, [f"{label} ({100 * s['mma'][2]:.1f})" for label, s in methods.items()],
+                  "method (MMA@3, %)")
     fig.tight_layout()
-    fig.savefig(paths[1], dpi=110)
+    _save(fig, paths[1])
     plt.close(fig)
     return paths
 
@@ -103,24 +127,23 @@ def pose_markdown(results: dict) -> str:
 
 
 def plot_pose(results: dict, output: Path) -> Path:
-    """pose_accuracy.png: fraction of pairs with pose error below each threshold (1..10 deg)."""
+    """pose_accuracy.png: fraction of pairs with pose error below each threshold (1..10 deg); legend below."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(5, 4))
-    _distinct_colours(ax)
-    for label, entry in results["methods"].items():
-        if "summary" in entry:
-            ax.plot(THRESHOLDS, entry["summary"]["accuracy"], marker="o", ms=3, label=f"{label} ({entry['summary']['maa']:.3f})")
+    fig, ax = plt.subplots(figsize=(6, 4))
+    handles, labels = [], []
+    methods = [(label, e["summary"]) for label, e in results["methods"].items() if "summary" in e]
+    for i, (label, s) in enumerate(methods):
+        handles += ax.plot(THRESHOLDS, s["accuracy"], **line_style(i))
+        labels.append(f"{label} ({s['maa']:.3f})")
     ax.set(xlabel="pose error threshold (deg)", ylabel="accuracy", ylim=(0, 1.02))
     ax.grid(alpha=0.3)
-    if ax.lines:
-        ax.legend(fontsize=7)
+    _legend_below(fig, handles, labels, "method (mAA@1:10)")
     fig.tight_layout()
-    path = output / "pose_accuracy.png"
-    fig.savefig(path, dpi=110)
+    path = _save(fig, output / "pose_accuracy.png")
     plt.close(fig)
     return path
 
@@ -135,3 +158,98 @@ def write_results(results: dict, output: Path, markdown: Callable[[dict], str], 
     (output / "results.md").write_text(markdown(results))
     plot(results, output)
     return path
+
+
+# --- Regenerating every plot of a results tree -------------------------------------------
+
+FIGURES_FILE = "figures.json"
+
+
+def merge_results(parts: list[dict]) -> dict:
+    """Several runs of one benchmark as one results dict: a later run's method replaces an
+    earlier one's of the same label (in place); new labels are appended. Config and data
+    come from the first run."""
+    merged = dict(parts[0], methods=dict(parts[0]["methods"]))
+    for part in parts[1:]:
+        merged["methods"].update(part["methods"])
+    return merged
+
+
+def _kind(results: dict) -> str | None:
+    """``homography``, ``pose`` or None (SfM and unknown results have no curves)."""
+    if "methods" not in results:
+        return None
+    return "homography" if "sequences" in results else "pose" if "scenes" in results else None
+
+
+def _plot(kind: str, results: dict, folder: Path) -> list[Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    return plot_curves(results, folder) if kind == "homography" else [plot_pose(results, folder)]
+
+
+def regenerate_plots(root: Path) -> list[Path]:
+    """Redraw every benchmark plot under ``root`` from the results there; returns the PNGs written.
+
+    A folder with a ``results.json`` of ``bench homography`` or ``bench pose`` gets its plots
+    from it. ``root/figures.json`` names figures built from several runs, folder -> sources
+    (paths relative to ``root``):
+
+        {"homography": {"homography": ["homography/results.json", "later/homography/results.json"]},
+         "summary": {"summary": {"homography": [...], "pose": [...], "sfm": [...], "highlight": ["sekd_ours"]}}}
+
+    A later source's rows replace earlier ones of the same method, as in ``bench summary``.
+    """
+    from ..errors import SekdError
+    from .summary import write_summary
+
+    root = Path(root)
+    if not root.is_dir():
+        raise SekdError(f"{root}: not a folder; give the folder holding the benchmark results (e.g. docs/results)")
+    figures = {}
+    manifest = root / FIGURES_FILE
+    if manifest.is_file():
+        try:
+            figures = json.loads(manifest.read_text())
+        except json.JSONDecodeError as exc:
+            raise SekdError(f"{manifest}: not valid JSON ({exc}); fix or remove it") from None
+    written = []
+    for path in sorted(root.rglob("results.json")):
+        folder = path.parent.relative_to(root).as_posix()
+        if folder in figures:
+            continue
+        results = _load_json(path)
+        kind = _kind(results)
+        if kind:
+            written += _plot(kind, results, path.parent)
+    for folder, spec in figures.items():
+        for kind, sources in spec.items():
+            if kind == "summary":
+                paths = {k: [root / p for p in sources.get(k, [])] for k in ("homography", "pose", "sfm")}
+                _check_exist(manifest, sum(paths.values(), []))
+                md = write_summary(root / folder, paths["homography"], paths["pose"], paths["sfm"],
+                                   tuple(sources.get("highlight", ())))
+                written.append(md.with_suffix(".png"))
+            elif kind in ("homography", "pose"):
+                _check_exist(manifest, [root / p for p in sources])
+                written += _plot(kind, merge_results([_load_json(root / p) for p in sources]), root / folder)
+            else:
+                raise SekdError(f"{manifest}: unknown figure kind {kind!r} for {folder!r}; "
+                                "use homography, pose or summary")
+    return written
+
+
+def _load_json(path: Path) -> dict:
+    from ..errors import SekdError
+
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise SekdError(f"{path}: cannot read benchmark results ({exc})") from None
+
+
+def _check_exist(manifest: Path, paths: list[Path]) -> None:
+    from ..errors import SekdError
+
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        raise SekdError(f"{manifest}: missing results file(s) {', '.join(missing)}")

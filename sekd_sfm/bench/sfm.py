@@ -25,7 +25,7 @@ from ..featurefile import read_attrs, read_features
 from ..features import FeatureConfig
 from ..match import MatchConfig, describe_config, match_descriptors
 from ..runtime import package_versions, shared_dir
-from ..sfm.colmap import colmap_log, require_pycolmap
+from ..sfm.colmap import colmap_log, log_prefix, require_pycolmap
 from ..sfm.mapping import mapper_options, run_mapper
 from ..sfm.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
 from ..sfm.report import write_json
@@ -66,7 +66,7 @@ def evaluate(reconstruction, truth: dict[str, StrechaCamera]) -> dict:
 
     ``maa`` is the mean average accuracy (1..10 deg) of the pose error max(rotation,
     translation direction) over ALL ground-truth pairs: a pair with an unregistered image
-    counts as a failure (SPEC.md §3).
+    counts as a failure (docs/method.md, Evaluation protocols).
     """
     if reconstruction is None:
         return {"registered_images": 0, "median_rotation_deg": None, "median_translation_deg": None, "maa": 0.0}
@@ -99,7 +99,8 @@ def run_ours(scene: Path, work: Path, config: ReconstructConfig, num_threads: in
     model = work / "model"
     reconstruction = require_pycolmap().Reconstruction(str(model)) if model.is_dir() else None
     stats = _read_json(work / "stats.json")
-    return {"method": label or f"sekd pipeline ({config.features.feature})", "wall_time_s": round(wall, 1),
+    return {"method": label or f"sekd pipeline ({config.features.feature}, {config.mapper_type} mapper)",
+            "wall_time_s": round(wall, 1),
             "stage_times_s": stats.get("timings_s", {}), "failure": failure,
             **evaluate(reconstruction, read_cameras(scene / "gt_dense_cameras"))}
 
@@ -125,7 +126,8 @@ def run_pycolmap_sift(scene: Path, work: Path, resize_max: int, camera_mode: str
         times["extract"] = time.perf_counter() - start
         pycolmap.match_exhaustive(str(database), device=pycolmap.Device.cpu)
         times["match+verification"] = time.perf_counter() - start - times["extract"]
-        models = run_mapper(database, scene / "images", mapper_options([], seed), progress=False)
+        models = run_mapper(database, scene / "images", mapper_options([], seed), progress=False,
+                            log_prefix=log_prefix(work / "colmap.log"))
     wall = time.perf_counter() - start
     times["mapping"] = wall - times["extract"] - times["match+verification"]
     return {"method": "pycolmap SIFT pipeline", "wall_time_s": round(wall, 1),

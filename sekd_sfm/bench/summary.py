@@ -84,8 +84,9 @@ def plot_summary(rows: dict[str, dict], output: Path, highlight: tuple[str, ...]
               ("pose_maa", "fountain-P11 pose mAA", 1), ("sfm_maa", "fountain-P11 SfM pose mAA", 1)]
     labels = list(rows)
     fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 0.35 * len(labels) + 1.5), sharey=True)
-    accents = dict(zip(highlight, ("tab:red", "tab:orange", "tab:green", "tab:purple")))
-    colours = [accents.get(m, "tab:blue") for m in labels]
+    # Colour-blind-safe (Okabe & Ito): highlighted methods in strong colours, the rest grey.
+    accents = dict(zip(highlight, ("#D55E00", "#0072B2", "#009E73", "#CC79A7", "#E69F00")))
+    colours = [accents.get(m, "#999999") for m in labels]
     for ax, (key, title, scale) in zip(axes, panels):
         values = [scale * rows[m][key] if rows[m].get(key) is not None else 0.0 for m in labels]
         ax.barh(range(len(labels)), values, color=colours)

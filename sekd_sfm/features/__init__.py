@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from ..errors import SekdError
+from ..images import DEFAULT_MAX_PIXELS
 from ..inference import SEKDConfig, SEKDExtractor
 from ..runtime import resolve_device
 from ..weights import ModelInfo, file_sha256, load_model
@@ -24,6 +26,9 @@ class FeatureConfig:
     feature: str = "sekd"
     max_keypoints: int = 2000
     resize_max: int | None = None
+    #: Pixel cap: larger images are decoded at 1/2, 1/4 or 1/8 size (None: no cap). Not part of
+    #: the recorded config: it only changes images that would otherwise exhaust memory.
+    max_pixels: int | None = DEFAULT_MAX_PIXELS
     sekd: SEKDConfig = field(default_factory=SEKDConfig)
     weights: str | None = None
 
@@ -41,7 +46,7 @@ def build_extractor(config: FeatureConfig):
     if config.feature in PEER_FEATURES:
         peer = KorniaPeer(config.feature, config.max_keypoints, config.weights, resolve_device(config.sekd.device).type)
         return peer, ModelInfo(str(peer.weights_path), file_sha256(peer.weights_path), {})
-    raise ValueError(f"unknown feature type {config.feature!r}; choose from {', '.join(FEATURE_TYPES)}")
+    raise SekdError(f"unknown feature type {config.feature!r}; choose from {', '.join(FEATURE_TYPES)}")
 
 
 __all__ = ["FEATURE_TYPES", "FeatureConfig", "ModelInfo", "build_extractor"]

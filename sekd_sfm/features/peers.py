@@ -32,10 +32,39 @@ def peer_weights_path(name: str, weights: str | Path | None) -> Path:
 
 
 def _load_state(path: Path) -> dict:
-    return torch.load(path, map_location="cpu", weights_only=True)
+    """The tensors of a checkpoint (``weights_only``: a file cannot run code); SekdError naming a bad file."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except OSError:
+        raise  # permission denied, I/O error: the top-level handler names the file and the cause
+    except Exception as exc:  # torch raises RuntimeError, UnpicklingError, EOFError, ... for bad files
+        raise SekdError(f"{path}: not a readable PyTorch checkpoint ({_first_line(exc)}); "
+                        "pass --weights PATH to a valid local checkpoint") from exc
+    if not isinstance(state, dict):
+        raise SekdError(f"{path}: holds a {type(state).__name__}, not a checkpoint's dictionary of tensors")
+    return state
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc)
+    if "Weights only load failed" in text:  # torch's advice there (weights_only=False) would run the file's code
+        return "not a tensors-only PyTorch file; files that hold code are refused"
+    lines = [line.strip() for line in text.strip().splitlines() if line.strip()]
+    return " ".join(lines[:2])[:200] or type(exc).__name__
 
 
 def _build(name: str, path: Path, max_keypoints: int) -> torch.nn.Module:
+    """The kornia model with the weights of ``path``; SekdError when they do not fit ``name``."""
+    try:
+        return _build_unchecked(name, path, max_keypoints)
+    except SekdError:
+        raise
+    except (KeyError, RuntimeError, TypeError, ValueError, AttributeError) as exc:
+        raise SekdError(f"{path}: not {name} weights ({_first_line(exc)}); "
+                        f"pass --weights PATH to a local {name} checkpoint") from exc
+
+
+def _build_unchecked(name: str, path: Path, max_keypoints: int) -> torch.nn.Module:
     import kornia.feature as KF
 
     state = _load_state(path)

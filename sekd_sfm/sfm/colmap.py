@@ -51,17 +51,23 @@ def open_database(path: Path):
     return pycolmap.Database(str(path))
 
 
+def log_prefix(path: Path) -> Path:
+    """The prefix glog gives the files it writes for the log ``path`` (``colmap.log.<date>-<time>.<pid>``)."""
+    return path.with_name(path.name + ".")
+
+
 @contextmanager
 def colmap_log(path: Path):
     """Send COLMAP's log (glog) to the file ``path`` instead of the console while the block runs.
 
-    glog names its file ``<prefix><date>-<time>.<pid>``; the file is renamed to ``path``
-    at the end (replacing the log of an earlier run). Errors are logged there too: the
-    caller explains failures itself.
+    glog names its file ``<prefix><date>-<time>.<pid>``; at the end, the files written during
+    the block (this process's and those of child processes given ``log_prefix(path)``, such
+    as the mapper's) are joined in time order into ``path``, replacing the log of an earlier
+    run. Yields ``path``. Errors are logged there too: the caller explains failures itself.
     """
     log = require_pycolmap().logging
     saved = (log.alsologtostderr, log.logtostderr, log.stderrthreshold, log.minloglevel)
-    prefix = path.with_name(path.name + ".")
+    prefix = log_prefix(path)
     before = set(path.parent.glob(prefix.name + "*"))
     log.alsologtostderr, log.logtostderr, log.stderrthreshold, log.minloglevel = False, False, 3, 0
     for level in (log.WARNING, log.ERROR):
@@ -72,15 +78,26 @@ def colmap_log(path: Path):
     finally:
         log.set_log_destination(log.INFO, "")  # closes (and flushes) the file
         log.alsologtostderr, log.logtostderr, log.stderrthreshold, log.minloglevel = saved
-        _rename_newest(set(path.parent.glob(prefix.name + "*")) - before, path)
+        _join_logs(set(path.parent.glob(prefix.name + "*")) - before, path)
 
 
-def _rename_newest(files: set[Path], target: Path) -> None:
-    if files:
-        newest = max(files, key=lambda p: p.stat().st_mtime)
-        os.replace(newest, target)
-        for other in files - {newest}:
-            other.unlink(missing_ok=True)
+def clean_logs(path: Path) -> None:
+    """Remove glog files of ``path`` left by a killed run (call it holding the output folder's lock)."""
+    for stale in path.parent.glob(log_prefix(path).name + "*"):
+        stale.unlink(missing_ok=True)
+
+
+def _join_logs(files: set[Path], target: Path) -> None:
+    if not files:
+        return
+    # glog's names sort by start time (<date>-<time>.<pid>); the mapper's child starts last.
+    ordered = sorted(files, key=lambda p: (p.name.rsplit(".", 1)[0], p.stat().st_mtime))
+    tmp = target.with_name("." + target.name + ".joining")  # outside the glob of log_prefix
+    with open(tmp, "wb") as out:
+        out.writelines(part.read_bytes() for part in ordered)
+    os.replace(tmp, target)
+    for part in ordered:
+        part.unlink(missing_ok=True)
 
 
 def _convert(text: str, current, key: str):

@@ -21,7 +21,8 @@ from ..pairs import Pair
 from .colmap import open_database, require_pycolmap, set_options
 
 logger = logging.getLogger("sekd")
-#: Camera sharing: COLMAP's AUTO (same size and EXIF = same camera), one for all, one per folder, one per image.
+#: Camera sharing: auto (same size and EXIF make, model, focal length = same camera; see camera_groups),
+#: one for all, one per folder, one per image.
 CAMERA_MODES = {"auto": "AUTO", "single": "SINGLE", "per-folder": "PER_FOLDER", "per-image": "PER_IMAGE"}
 #: OpenCV -> COLMAP pixel convention.
 COLMAP_PIXEL_OFFSET = 0.5
@@ -58,7 +59,52 @@ def parse_camera_params(model: str, params: str | None, width: int = 1000, heigh
     return values
 
 
+#: EXIF tags of the camera key: Make and Model (IFD0), FocalLength (Exif sub-IFD).
+_EXIF_MAKE, _EXIF_MODEL, _EXIF_IFD, _EXIF_FOCAL = 0x010F, 0x0110, 0x8769, 0x920A
+
+
+def camera_key(path: Path) -> tuple:
+    """``(width, height, make, model, focal length in mm)`` of an image, read without decoding pixels.
+
+    EXIF fields that are absent are None, so photos of one size without EXIF share a key (a
+    folder of one camera's frames with the EXIF stripped is the common case). An image PIL
+    cannot parse gets a key of its own (its path), hence its own camera.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:  # reads the header only
+            width, height = image.size
+            exif = image.getexif()
+            focal = exif.get_ifd(_EXIF_IFD).get(_EXIF_FOCAL, exif.get(_EXIF_FOCAL))
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
+        return (str(path),)
+
+    def text(tag: int) -> str | None:
+        value = exif.get(tag)
+        return str(value).strip("\x00 ").lower() or None if value is not None else None
+
+    try:
+        focal = round(float(focal), 3) if focal is not None else None
+    except (TypeError, ValueError, ZeroDivisionError):
+        focal = None
+    return (width, height, text(_EXIF_MAKE), text(_EXIF_MODEL), focal)
+
+
+def camera_groups(image_dir: Path, names: list[str]) -> list[list[str]]:
+    """``names`` grouped by ``camera_key``: one list per camera, in the order of first appearance."""
+    groups: dict[tuple, list[str]] = {}
+    for name in names:
+        groups.setdefault(camera_key(Path(image_dir) / name), []).append(name)
+    return list(groups.values())
+
+
 def _import_images(database: Path, image_dir: Path, names: list[str], camera: CameraConfig) -> None:
+    """Cameras and images into ``database``. ``auto`` imports each camera group as one shared camera.
+
+    COLMAP's own AUTO mode gives every image without an EXIF focal length its own camera
+    (11 cameras for fountain-P11's 11 photos of one camera), so the groups are made here.
+    """
     pycolmap = require_pycolmap()
     missing = [n for n in names if not (image_dir / n).is_file()]
     if missing:
@@ -70,9 +116,20 @@ def _import_images(database: Path, image_dir: Path, names: list[str], camera: Ca
     options = pycolmap.ImageReaderOptions()
     options.camera_model = camera.model
     options.camera_params = camera.params or ""
-    mode = getattr(pycolmap.CameraMode, CAMERA_MODES[camera.mode])
     open_database(database).close()  # import_images needs an existing database file
-    pycolmap.import_images(str(database), str(image_dir), mode, names, options)
+    if camera.mode == "auto":
+        for group in camera_groups(image_dir, names):
+            pycolmap.import_images(str(database), str(image_dir), pycolmap.CameraMode.SINGLE, group, options)
+    else:
+        mode = getattr(pycolmap.CameraMode, CAMERA_MODES[camera.mode])
+        pycolmap.import_images(str(database), str(image_dir), mode, names, options)
+    with open_database(database) as db:
+        imported = {image.name for image in db.read_all_images()}
+    if set(names) - imported:
+        skipped = sorted(set(names) - imported)
+        hint = ("--camera-mode single needs images of one size; use auto or per-image" if camera.mode == "single"
+                else "see colmap.log for COLMAP's reason")
+        raise SekdError(f"{image_dir}: COLMAP did not import {len(skipped)} image(s): {', '.join(skipped[:5])}; {hint}")
 
 
 def _write_keypoints(db, ids: dict[str, int], features: Path) -> None:

@@ -1,97 +1,229 @@
-"""Stage 5: database -> COLMAP model(s), by pycolmap's incremental mapper.
+"""Stage 5: database -> COLMAP model(s), by one of pycolmap's three mappers.
+
+* ``incremental`` (``pycolmap.incremental_mapping``): COLMAP's classic mapper, one image at a time;
+* ``global`` (``pycolmap.global_mapping``, GLOMAP): rotation averaging + global positioning,
+  then bundle adjustment: all cameras at once;
+* ``hierarchical`` (``pycolmap.hierarchical_mapping``): the view graph cut into overlapping
+  clusters, each mapped incrementally, then merged (for very large collections).
+
+The mapper runs in a child process (``mapper_worker``) so that Ctrl-C stops it at once.
 
 Output layout under the output folder::
 
-    model/            the largest sub-model (most registered images), COLMAP binary format
-    submodels/1, ...  the other sub-models, if any, largest first
+    model/            the largest model (most registered images), COLMAP binary format
+    models/1, ...     the other models, if the images split into several, largest first
 """
 from __future__ import annotations
 
+import os
+import pickle
+import select
 import shutil
+import subprocess
+import sys
 import tempfile
+import time
 from pathlib import Path
 
 from tqdm import tqdm
 
-from ..errors import Interrupted
+from ..errors import Interrupted, SekdError
 from .colmap import open_database, require_pycolmap, set_options
 
 MAIN_MODEL = "model"
-SUBMODELS = "submodels"
+MODELS = "models"
+#: Folders of older layouts and of killed runs, removed before models are written.
+STALE = ("submodels",)
+MAPPER_TYPES = ("incremental", "global", "hierarchical")
+#: pycolmap's option class of each mapper type.
+OPTION_CLASSES = {"incremental": "IncrementalPipelineOptions", "global": "GlobalPipelineOptions",
+                  "hierarchical": "HierarchicalPipelineOptions"}
+#: The command that starts the mapper's child process (the request goes to its stdin).
+WORKER_COMMAND = [sys.executable, "-m", "sekd_sfm.sfm.mapper_worker"]
+#: Prefix of the mapper's scratch folders in the output folder (removed at the end, or by the next run).
+SCRATCH_PREFIX = "mapping-"
 
 
-def mapper_options(assignments: list[str] | None = None, seed: int = 0):
-    """IncrementalPipelineOptions with validated ``key=value`` overrides, seeded for repeatable runs.
+def default_options(mapper_type: str = "incremental", seed: int = 0):
+    """The pycolmap options object of ``mapper_type``, seeded, on one thread (see ``mapper_options``)."""
+    if mapper_type not in MAPPER_TYPES:
+        raise SekdError(f"unknown mapper type {mapper_type!r}; choose from {', '.join(MAPPER_TYPES)}")
+    pycolmap = require_pycolmap()
+    options = getattr(pycolmap, OPTION_CLASSES[mapper_type])()
+    options.num_threads = 1
+    if mapper_type == "hierarchical":  # no seed of its own: its clusters are mapped incrementally
+        options.incremental_options.random_seed = seed
+    else:
+        options.random_seed = seed
+    return options
 
+
+def mapper_options(assignments: list[str] | None = None, seed: int = 0, mapper_type: str = "incremental"):
+    """The options of ``mapper_type`` with validated ``key=value`` overrides, seeded for repeatable runs.
+
+    An option that the chosen mapper does not have is a SekdError naming the closest ones.
     One thread unless ``num_threads=N`` is assigned: COLMAP's mapper repeats its model for a
     seed only on one thread. With all cores, bundle adjustment sums in a varying order and on
     a weak scene that decides what registers (sacre_coeur, same matches: 10/10 images in three
-    runs of four, 3/10 in the other; on one thread 10/10 every time). Mapping is the cheap
-    stage here (seconds for tens of images); ``--mapper num_threads=-1`` trades repeatability
-    for speed on large scenes.
+    runs of four, 3/10 in the other; on one thread 10/10 every time). ``--mapper num_threads=-1``
+    trades repeatability for speed on large scenes.
     """
-    pycolmap = require_pycolmap()
-    options = pycolmap.IncrementalPipelineOptions()
-    options.random_seed = seed
-    options.num_threads = 1
-    return set_options(options, assignments or [], "--mapper")
+    return set_options(default_options(mapper_type, seed), assignments or [], "--mapper")
+
+
+def mapper_type_of(options) -> str:
+    """The mapper type whose option class ``options`` is."""
+    for kind, cls in OPTION_CLASSES.items():
+        if type(options).__name__ == cls:
+            return kind
+    raise SekdError(f"not a mapper options object: {type(options).__name__}")
+
+
+def min_num_matches(options) -> int:
+    """The verified inliers a pair needs to link two images in the mapper of ``options``."""
+    inner = getattr(options, "incremental_options", options)
+    return int(inner.min_num_matches)
+
+
+def initial_pair_options(options):
+    """The incremental mapper's initial-pair settings (``mapper.init_*``), or None for the global mapper."""
+    inner = getattr(options, "incremental_options", options)
+    return inner.mapper if hasattr(inner.mapper, "init_min_num_inliers") else None
 
 
 class _MapperProgress:
-    """A progress bar driven by the mapper's callbacks: +2 at an initial pair, +1 per registered image."""
+    """The mapping progress bar.
 
-    def __init__(self, total: int, enabled: bool):
-        self.bar = tqdm(total=total, unit="img", desc="mapping", disable=not enabled, dynamic_ncols=True)
+    The incremental mapper reports events (+2 images at an initial pair, +1 per registered
+    image); the others report nothing until they finish, so their bar shows the elapsed time.
+    """
+
+    def __init__(self, total: int, mapper_type: str, enabled: bool):
+        counted = mapper_type == "incremental"
+        self.bar = tqdm(total=total if counted else None, unit="img", desc=f"mapping ({mapper_type})",
+                        disable=not enabled, dynamic_ncols=True,
+                        bar_format=None if counted else "{desc}: {elapsed} elapsed")
         self.models = 0
 
-    def initial_pair(self) -> None:
-        self.models += 1
-        self.bar.set_postfix_str(f"model {self.models}")
-        self._advance(2)
-
-    def next_image(self) -> None:
-        self._advance(1)
+    def event(self, line: str) -> None:
+        if line == "pair":
+            self.models += 1
+            self.bar.set_postfix_str(f"model {self.models}")
+            self._advance(2)
+        elif line == "image":
+            self._advance(1)
 
     def _advance(self, n: int) -> None:
-        # Sub-models may share images, so the count can exceed the image total: cap it.
+        # Models may share images, so the count can exceed the image total: cap it.
         self.bar.update(max(0, min(n, self.bar.total - self.bar.n)))
 
+    def tick(self) -> None:
+        self.bar.refresh()
 
-def run_mapper(database: str | Path, image_dir: str | Path, options=None, progress: bool = True) -> list:
-    """Incremental mapping of ``database``; the reconstructions found, largest first (may be empty).
 
-    ``image_dir`` is only read for point colours. The random generator is seeded from
-    ``options.random_seed`` (``pycolmap.set_random_seed``) so a run is repeatable.
+def clean_scratch(folder: Path) -> None:
+    """Remove the scratch folders a killed mapping left in ``folder`` (call it holding the folder's lock)."""
+    for stale in Path(folder).glob(SCRATCH_PREFIX + "*"):
+        if stale.is_dir():
+            shutil.rmtree(stale, ignore_errors=True)
+
+
+def run_mapper(database: str | Path, image_dir: str | Path, options=None, progress: bool = True,
+               log_prefix: str | Path | None = None) -> list:
+    """Map ``database`` with the mapper of ``options``; the reconstructions found, largest first (may be empty).
+
+    ``options`` is one of pycolmap's pipeline option objects (``mapper_options``; default:
+    incremental). ``image_dir`` is only read for point colours. The random generator is seeded
+    from the options, so a run is repeatable. The mapper runs in a child process: Ctrl-C (or
+    SIGTERM) kills it within a fraction of a second and raises Interrupted. COLMAP's log of
+    the child goes to files ``<log_prefix><date>-<time>.<pid>`` (none without ``log_prefix``).
     """
-    pycolmap = require_pycolmap()
-    options = options or mapper_options()
-    pycolmap.set_random_seed(max(0, options.random_seed))
+    require_pycolmap()
+    options = options if options is not None else mapper_options()
+    kind = mapper_type_of(options)
     with open_database(database) as db:
         total = db.num_images()
-    bar = _MapperProgress(total, progress)
-    scratch = Path(tempfile.mkdtemp(prefix="mapping-", dir=Path(database).parent))
+    scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=Path(database).parent))
+    request = {"mapper_type": kind, "options": options, "database": str(database), "image_dir": str(image_dir),
+               "scratch": str(scratch / "work"), "result": str(scratch / "result"), "parent_pid": os.getpid(),
+               "seed": _seed(options), "log_prefix": str(log_prefix) if log_prefix else None}
+    bar = _MapperProgress(total, kind, progress)
     try:
-        found = pycolmap.incremental_mapping(str(database), str(image_dir), str(scratch), options,
-                                             initial_image_pair_callback=bar.initial_pair,
-                                             next_image_callback=bar.next_image)
-    except KeyboardInterrupt:  # pycolmap stops the mapper at Ctrl-C and raises it here
-        raise Interrupted(f"interrupted while mapping: {database} (features and matches) is kept; run the same "
-                          "command again to map again") from None
+        _run_child(request, scratch, bar)
+        reconstruction = require_pycolmap().Reconstruction
+        results = sorted((scratch / "result").iterdir(), key=lambda p: int(p.name)) if (scratch / "result").is_dir() else []
+        return [reconstruction(str(path)) for path in results]
     finally:
         bar.bar.close()
         shutil.rmtree(scratch, ignore_errors=True)  # models are written by write_models, in our layout
-    return sorted(found.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
+
+
+def _seed(options) -> int:
+    return int(getattr(options, "incremental_options", options).random_seed)
+
+
+def _run_child(request: dict, scratch: Path, bar: _MapperProgress) -> None:
+    """Start the worker, forward its events to ``bar``; kill it on Ctrl-C; SekdError if it fails."""
+    stderr_path = scratch / "stderr.txt"
+    with open(stderr_path, "wb") as stderr:
+        child = subprocess.Popen(WORKER_COMMAND, stdin=subprocess.PIPE,
+                                 stdout=subprocess.PIPE, stderr=stderr, cwd=os.getcwd())
+    try:
+        try:
+            child.stdin.write(pickle.dumps(request))
+            child.stdin.close()
+        except BrokenPipeError:  # the child died at start: its exit code and stderr say why, below
+            pass
+        _follow(child, bar)
+    except KeyboardInterrupt:
+        # Ctrl-C, or SIGTERM (raised as KeyboardInterrupt): the mapper's work is worthless
+        # without us, so kill it at once rather than wait for it to look for a signal.
+        _kill(child)
+        raise Interrupted(f"interrupted while mapping: {request['database']} (features and matches) is kept; "
+                          "run the same command again to map again") from None
+    except BaseException:
+        _kill(child)
+        raise
+    if child.returncode != 0:
+        detail = stderr_path.read_text(errors="replace").strip().splitlines()
+        how = f"exit code {child.returncode}" if child.returncode > 0 else f"killed by signal {-child.returncode}"
+        raise SekdError(f"the {request['mapper_type']} mapper failed on {request['database']} ({how}): "
+                        f"{detail[-1] if detail else 'no message'}; COLMAP's log has the details (out of memory "
+                        "if killed by signal 9)")
+
+
+def _kill(child: subprocess.Popen) -> None:
+    child.kill()
+    child.wait()
+
+
+def _follow(child: subprocess.Popen, bar: _MapperProgress) -> None:
+    """Read the child's event lines until it exits, refreshing the bar at least twice a second."""
+    stream, pending = child.stdout, b""
+    while True:
+        ready, _, _ = select.select([stream], [], [], 0.5)
+        if ready:
+            chunk = os.read(stream.fileno(), 4096)
+            if not chunk:
+                break
+            pending += chunk
+            *lines, pending = pending.split(b"\n")
+            for line in lines:
+                bar.event(line.decode(errors="replace"))
+        bar.tick()
+    while child.poll() is None:  # stdout closed: the child is exiting
+        time.sleep(0.01)
 
 
 def write_models(reconstructions: list, output_dir: str | Path) -> list[Path]:
-    """Write the largest reconstruction to ``output_dir/model`` and the others to ``submodels/<k>``.
+    """Write the largest reconstruction to ``output_dir/model`` and the others to ``models/<k>`` (k = 1, 2, ...).
 
-    COLMAP binary format. Stale models of an earlier run are removed first. Returns the folders written.
+    COLMAP binary format. Models of an earlier run are removed first. Returns the folders written.
     """
     output_dir = Path(output_dir)
-    for stale in (output_dir / MAIN_MODEL, output_dir / SUBMODELS):
+    for stale in (output_dir / MAIN_MODEL, output_dir / MODELS, *(output_dir / s for s in STALE)):
         shutil.rmtree(stale, ignore_errors=True)
-    paths = [output_dir / MAIN_MODEL] + [output_dir / SUBMODELS / str(k) for k in range(1, len(reconstructions))]
+    paths = [output_dir / MAIN_MODEL] + [output_dir / MODELS / str(k) for k in range(1, len(reconstructions))]
     for reconstruction, path in zip(reconstructions, paths):
         path.mkdir(parents=True, exist_ok=True)
         reconstruction.write_binary(str(path))

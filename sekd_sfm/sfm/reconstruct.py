@@ -2,11 +2,16 @@
 
 Files in the output folder::
 
-    features.h5, pairs.txt, matches.h5   the earlier stages (reused when made with the same configuration)
+    features.h5, pairs.txt, matches.h5   the earlier stages (reused when made with the same configuration;
+                                         features/matches given by the caller are read in place instead)
     database.db                          COLMAP database (kept on failure, for inspection)
     colmap.log                           COLMAP's log
-    model/, submodels/<k>/               COLMAP binary models (largest first)
-    stats.json                           counts, accuracy figures, timings, configuration
+    model/, models/<k>/                  COLMAP binary models (the largest in model/, the others largest first)
+    stats.json                           counts, accuracy figures, images in no model, timings, configuration
+    .lock                                held for the run: a second run on the same folder is refused
+
+The run holds the folder's lock from start to end, so whatever a killed run left behind
+(the mapper's ``mapping-*`` scratch folders, ``colmap.log.*`` pieces) is removed at the start.
 """
 from __future__ import annotations
 
@@ -19,12 +24,14 @@ from pathlib import Path
 
 from .. import featurefile as ff
 from .. import matchfile as mf
+from ..errors import SekdError
 from ..extract import extract_features
 from ..features import FeatureConfig
+from ..locking import exclusive_lock
 from ..match import MatchConfig, match_features
-from ..pairs import PairsConfig, make_pairs, read_pairs
+from ..pairs import PairsConfig, make_pairs, read_pairs, write_pairs
 from ..runtime import package_versions
-from .colmap import colmap_log, require_pycolmap
+from .colmap import clean_logs, colmap_log, log_prefix, require_pycolmap
 from .database import (
     CameraConfig,
     create_database,
@@ -33,7 +40,10 @@ from .database import (
     verify_matches,
 )
 from .mapping import (
+    MAPPER_TYPES,
+    clean_scratch,
     mapper_options,
+    min_num_matches,
     model_stats,
     registered_names,
     run_mapper,
@@ -42,8 +52,8 @@ from .mapping import (
 from .report import (
     ReconstructionError,
     check_enough_matches,
+    explain_models,
     explain_no_model,
-    explain_submodels,
     match_statistics,
     summarize_matches,
     unregistered_report,
@@ -53,17 +63,31 @@ from .report import (
 logger = logging.getLogger("sekd")
 
 
+#: Long side (px) images are reduced to for reconstruction, as hloc does: SEKD's cost grows with
+#: the pixels, and a 24 MP photo at full size costs ~40 s of CPU to extract.
+DEFAULT_RESIZE_MAX = 1600
+#: The mapper used unless told otherwise (docs/reconstruction.md has the measurements).
+DEFAULT_MAPPER = "incremental"
+
+
 @dataclass
 class ReconstructConfig:
-    """Every stage's settings; ``mapper`` / ``verification`` are ``key=value`` pycolmap option overrides."""
+    """Every stage's settings; ``mapper`` / ``verification`` are ``key=value`` pycolmap option overrides.
 
-    features: FeatureConfig = field(default_factory=FeatureConfig)
+    ``mapper_type`` is one of MAPPER_TYPES; ``mapper`` options are those of its option class.
+    """
+
+    features: FeatureConfig = field(default_factory=lambda: FeatureConfig(resize_max=DEFAULT_RESIZE_MAX))
     pairs: PairsConfig = field(default_factory=PairsConfig)
     matching: MatchConfig = field(default_factory=MatchConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
+    mapper_type: str = DEFAULT_MAPPER
     mapper: list[str] = field(default_factory=list)
     verification: list[str] = field(default_factory=list)
     seed: int = 0
+    #: Names of the feature and match files made in the output folder (``--conf`` names them
+    #: hloc-style, feats-<conf>.h5 and matches-<conf>_pairs.h5, so several presets' files coexist).
+    file_names: tuple[str, str] = ("features.h5", "matches.h5")
 
 
 class _Timer:
@@ -86,22 +110,51 @@ def _config_dict(config: ReconstructConfig) -> dict:
 
 
 def reconstruct(image_dir: str | Path, output_dir: str | Path, config: ReconstructConfig | None = None, *,
-                overwrite: bool = False, num_threads: int | None = None, progress: bool = True) -> Path:
+                overwrite: bool = False, num_threads: int | None = None, progress: bool = True,
+                features: str | Path | None = None, matches: str | Path | None = None, executor: str = "local",
+                ray_options=None) -> Path:
     """Reconstruct the images below ``image_dir`` into ``output_dir``; returns the main model's folder.
 
     Runs the missing stages (extract, pairs, match) and reuses existing outputs made with
-    the same configuration. Raises ReconstructionError, after writing stats.json and keeping
-    the database, when no model or several sub-models come out. COLMAP's log goes to
-    ``output_dir/colmap.log``.
+    the same configuration. ``features`` (a feature file of sekd or hloc) replaces extraction;
+    ``matches`` (a match file, needs ``features``) replaces pairs and matching: its pairs are
+    those of ``config.pairs.file`` when set, else all the pairs it holds. Both are read in
+    place, never modified. When the images split into several models each is written
+    (``model/`` the largest, ``models/1``, ...) and the split is logged as a warning.
+    Raises ReconstructionError, after writing stats.json and keeping the database, when no
+    model comes out; SekdError when another process is using ``output_dir``.
     """
     require_pycolmap()
     config = config or ReconstructConfig()
     image_dir, out = Path(image_dir), Path(output_dir)
+    _check_inputs(image_dir, features, matches)
     out.mkdir(parents=True, exist_ok=True)
+    with exclusive_lock(out, what="reconstruction folder"):
+        clean_scratch(out)  # left by a killed run: nobody else can be using them while we hold the lock
+        clean_logs(out / "colmap.log")
+        # executor / ray_options: where extraction and matching run (sekd_sfm.cluster).
+        stages = {"overwrite": overwrite, "num_threads": num_threads, "progress": progress, "executor": executor,
+                  "ray_options": ray_options}
+        return _locked(image_dir, out, config, stages, features, matches)
+
+
+def _check_inputs(image_dir: Path, features, matches) -> None:
+    if not image_dir.is_dir():
+        raise SekdError(f"{image_dir}: not a folder of images; give the folder holding the photos")
+    if matches is not None and features is None:
+        raise SekdError(f"--matches {matches}: also give the feature file these matches index (--features)")
+    for what, path in (("--features", features), ("--matches", matches)):
+        if path is not None and not Path(path).is_file():
+            raise SekdError(f"{what} {path}: no such file; give an existing HDF5 file or leave {what} out")
+
+
+def _locked(image_dir, out, config, stages: dict, features, matches) -> Path:
     timer, stats = _Timer(), {"status": "running", "failure": None, "config": _config_dict(config),
-                              "versions": package_versions(), "images_dir": str(image_dir)}
+                              "versions": package_versions(), "images_dir": str(image_dir),
+                              "inputs": {"features": str(features) if features else None,
+                                         "matches": str(matches) if matches else None}}
     try:
-        model = _run(image_dir, out, config, timer, stats, overwrite, num_threads, progress)
+        model = _run(image_dir, out, config, timer, stats, stages, features, matches)
         stats["status"] = "ok"
         return model
     except ReconstructionError as exc:
@@ -114,32 +167,68 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
             write_json(stats, out / "stats.json")
 
 
-def _run(image_dir, out, config, timer, stats, overwrite, num_threads, progress) -> Path:
+def _run(image_dir, out, config, timer, stats, stages: dict, features, matches) -> Path:
     # Options are checked first, so a typo fails in a second, not after extraction and matching.
-    options = mapper_options(config.mapper, config.seed)
+    if config.mapper_type not in MAPPER_TYPES:
+        raise SekdError(f"unknown mapper type {config.mapper_type!r}; choose from {', '.join(MAPPER_TYPES)}")
+    options = mapper_options(config.mapper, config.seed, config.mapper_type)
     two_view = two_view_options(config.verification, config.seed)
     parse_camera_params(config.camera.model, config.camera.params)
-    with timer("extract"):
-        features = extract_features(image_dir, out / "features.h5", config.features, overwrite=overwrite,
-                                    num_threads=num_threads, progress=progress)
-    with timer("pairs"):
-        pairs_file = make_pairs(features, out / "pairs.txt", config.pairs)
-    with timer("match"):
-        matches = match_features(features, pairs_file, out / "matches.h5", config.matching, overwrite=overwrite,
-                                 num_threads=num_threads, progress=progress)
-    stats["matching"] = json.loads(ff.read_attrs(matches, mf.FORMAT)["config"])  # defaults resolved (ratio)
+    features, pairs_file, matches = _inputs(image_dir, out, config, timer, stats, stages, features, matches)
+    num_threads, progress = stages["num_threads"], stages["progress"]
     database = out / "database.db"
-    with colmap_log(out / "colmap.log"):
+    with colmap_log(out / "colmap.log") as log:
         with timer("database"):
             create_database(image_dir, features, matches, read_pairs(pairs_file), database, config.camera)
         with timer("verification"):
             verify_matches(database, two_view, num_threads or -1)
-        match_stats = match_statistics(database, options.min_num_matches)
+        match_stats = match_statistics(database, min_num_matches(options))
         stats["matches"] = summarize_matches(match_stats)
         check_enough_matches(match_stats, database)
         with timer("mapping"):
-            models = run_mapper(database, image_dir, options, progress)
+            models = run_mapper(database, image_dir, options, progress, log_prefix=log_prefix(log))
     return _finish(models, match_stats, options, out, stats, database)
+
+
+def _inputs(image_dir, out, config, timer, stats, stages: dict, features, matches):
+    """features, pairs file and matches: the caller's files where given, else made (or reused) in ``out``."""
+    overwrite, num_threads, progress = stages["overwrite"], stages["num_threads"], stages["progress"]
+    executor, ray_options = stages["executor"], stages["ray_options"]
+    with timer("extract"):
+        if features is None:
+            features = extract_features(image_dir, out / config.file_names[0], config.features, overwrite=overwrite,
+                                        num_threads=num_threads, progress=progress, executor=executor,
+                                        ray_options=ray_options)
+        else:
+            ff.read_attrs(Path(features))  # sekd or hloc, else one clear error
+    with timer("pairs"):
+        if matches is None:
+            pairs_file = make_pairs(features, out / "pairs.txt", config.pairs, progress=progress)
+        else:
+            pairs = read_pairs(config.pairs.file) if config.pairs.file else _stored_pairs(Path(matches))
+            pairs_file = write_pairs(pairs, out / "pairs.txt")  # the record of what was imported
+    with timer("match"):
+        if matches is None:
+            matches = match_features(features, pairs_file, out / config.file_names[1], config.matching,
+                                     overwrite=overwrite, num_threads=num_threads, progress=progress,
+                                     executor=executor, ray_options=ray_options)
+    stats["matching"] = _matching_config(Path(matches))
+    return Path(features), pairs_file, Path(matches)
+
+
+def _stored_pairs(matches: Path) -> list:
+    try:
+        return mf.list_pairs(matches)
+    except (OSError, KeyError) as exc:
+        raise SekdError(f"{matches}: cannot list its pairs ({exc}); give them with --pairs-file") from None
+
+
+def _matching_config(matches: Path) -> dict:
+    """The match file's configuration (defaults resolved, e.g. the ratio); a placeholder for foreign files."""
+    try:
+        return json.loads(ff.read_attrs(matches, mf.FORMAT)["config"])
+    except (SekdError, KeyError, ValueError):
+        return {"source": str(matches)}
 
 
 def distinct_models(models: list) -> tuple[list, int]:
@@ -163,9 +252,12 @@ def _finish(models: list, match_stats: dict, options, out: Path, stats: dict, da
     paths = write_models(models, out)
     groups = [registered_names(m) for m in models]
     stats["model"] = model_stats(models[0])
-    stats["models"] = [{"path": str(p), **model_stats(m)} for p, m in zip(paths, models)]
-    stats["unregistered"] = unregistered_report(sorted(set(match_stats["images"]) - set(groups[0])), match_stats)
+    stats["models"] = [{"path": str(p), **model_stats(m), "images": names} for p, m, names in zip(paths, models, groups)]
+    in_a_model = {name for names in groups for name in names}
+    stats["unregistered"] = unregistered_report(sorted(set(match_stats["images"]) - in_a_model), match_stats)
     stats["output"] = str(paths[0])
     if len(models) > 1:
-        raise explain_submodels(groups, match_stats, database)
+        message = explain_models(groups, match_stats, paths)
+        stats["split"] = message.splitlines()[0]
+        logger.warning("%s", message)
     return paths[0]

@@ -85,37 +85,55 @@ def check_enough_matches(stats: dict, database: Path) -> None:
 
 
 def explain_no_model(stats: dict, options, database: Path) -> ReconstructionError:
-    """The mapper found no initial pair: the requirements it checks and the best candidate pairs."""
-    mapper = options.mapper
+    """The mapper made no model: for the incremental mappers, the initial-pair requirements; the best pairs."""
+    from .mapping import initial_pair_options, mapper_type_of
+
+    kind, init = mapper_type_of(options), initial_pair_options(options)
+    if init is not None:
+        first = "no initial pair: the mapper found no image pair to start from"
+        why = (f"  an initial pair needs >= {init.init_min_num_inliers} inliers, a triangulation angle >= "
+               f"{init.init_min_tri_angle} deg and forward motion <= {init.init_max_forward_motion}\n")
+        prefix = "incremental_options." if kind == "hierarchical" else ""
+        fix = (f"  try --mapper {prefix}mapper.init_min_num_inliers=50 --mapper {prefix}mapper.init_min_tri_angle=8, "
+               "or images with a wider baseline")
+        if kind == "hierarchical":  # its clusters also drop models smaller than min_model_size
+            size = options.incremental_options.min_model_size
+            why += f"  and the hierarchical mapper keeps only models of >= {size} images\n"
+            fix += "; for small collections use --mapper-type incremental"
+    else:
+        first = "no model: the global mapper could not place enough cameras"
+        why = (f"  a model needs >= {options.min_model_size} images linked by pairs with >= {options.min_num_matches} "
+               "verified inliers and consistent relative rotations\n")
+        fix = "  try --mapper-type incremental, more keypoints, or images with more overlap"
     return ReconstructionError(
-        "no initial pair: the mapper found no image pair to start from\n"
-        f"  an initial pair needs >= {mapper.init_min_num_inliers} inliers, a triangulation angle >= "
-        f"{mapper.init_min_tri_angle} deg and forward motion <= {mapper.init_max_forward_motion}\n"
-        + _counts_line(stats) + "\n  best pairs:\n" + (_pair_lines(stats["pairs"]) or "    (none)") + "\n"
-        f"  database kept: {database}\n"
-        "  try --mapper mapper.init_min_num_inliers=50 --mapper mapper.init_min_tri_angle=8, or images with a wider baseline"
+        first + "\n" + why + _counts_line(stats) + "\n  best pairs:\n" + (_pair_lines(stats["pairs"]) or "    (none)")
+        + f"\n  database kept: {database}\n" + fix
     )
 
 
-def explain_submodels(groups: list[list[str]], stats: dict, database: Path) -> ReconstructionError:
-    """Several sub-models: their images and the strongest verified links between them."""
+def explain_models(groups: list[list[str]], stats: dict, paths: list[Path]) -> str:
+    """Several models: where each was written, its images, and the strongest verified links between them."""
     where = {name: k for k, names in enumerate(groups) for name in names}
     links = [p for p in stats["pairs"] if p[0] in where and p[1] in where and where[p[0]] != where[p[1]]]
-    lines = [f"    model {k}: {len(names)} images: {', '.join(names[:8])}{' ...' if len(names) > 8 else ''}"
-             for k, names in enumerate(groups)]
-    return ReconstructionError(
-        f"{len(groups)} sub-models: the images split into groups the mapper could not join; the largest is the main model\n"
-        + "\n".join(lines) + "\n" + _counts_line(stats) + "\n"
-        f"  strongest links between different sub-models (needs >= {stats['min_inliers']} inliers and enough 3D points):\n"
+    lines = [f"    {path}: {len(names)} images: {', '.join(names[:8])}{' ...' if len(names) > 8 else ''}"
+             for path, names in zip(paths, groups)]
+    return (
+        f"{len(groups)} models: the images split into groups the mapper could not join; each is written, "
+        "the largest to model/\n" + "\n".join(lines) + "\n"
+        f"  strongest links between different models (needs >= {stats['min_inliers']} inliers and enough 3D points):\n"
         + (_pair_lines(links) or "    (no verified pair links them)") + "\n"
-        f"  database kept: {database}\n"
-        "  try pairs linking the groups (exhaustive), more keypoints, or --mapper min_model_size / multiple_models=false"
+        "  to join them: pairs linking the groups (--pairs exhaustive), more keypoints, or photos between the groups"
     )
 
 
 def unregistered_report(names: list[str], stats: dict) -> list[dict]:
-    """For images not in the main model: keypoints, verified pairs and best inlier count."""
-    return [{"name": n, **stats["images"].get(n, {})} for n in names]
+    """For images in no model: keypoints, verified pairs, best inlier count and raw matches of their best pairs."""
+    report = []
+    for name in names:
+        best = [(b if a == name else a, raw, inl) for a, b, raw, inl in stats["pairs"] if name in (a, b)][:3]
+        report.append({"name": name, **stats["images"].get(name, {}),
+                       "best_pairs": [{"with": other, "matches": raw, "inliers": inl} for other, raw, inl in best]})
+    return report
 
 
 def write_json(data: dict, path: Path) -> Path:
@@ -135,14 +153,17 @@ def format_summary(stats: dict) -> str:
         lines.append(f"  3D points          {model['points3D']}")
         lines.append(f"  mean track length  {model['mean_track_length']:.2f}")
         lines.append(f"  mean reproj. error {model['mean_reprojection_error_px']:.3f} px")
-        lines.append(f"  sub-models         {len(stats['models'])}")
+        lines.append(f"  models             {len(stats['models'])}" + (" (the others in models/)" if len(stats["models"]) > 1 else ""))
     m = stats.get("matches") or {}
     if m:
         lines.append(f"  matches            {m['pairs_with_matches']} pairs, median {m['median_matches']:.0f} matches, "
                      f"{m['verified_pairs']} verified (median {m['median_inliers']:.0f} inliers)")
-    for item in stats.get("unregistered", [])[:5]:
+    unregistered = stats.get("unregistered", [])
+    for item in unregistered[:5]:
         lines.append(f"  not registered     {item['name']}: {item.get('keypoints', 0)} keypoints, "
                      f"{item.get('verified_pairs', 0)} verified pairs, best {item.get('best_inliers', 0)} inliers")
+    if len(unregistered) > 5:
+        lines.append(f"  not registered     ... and {len(unregistered) - 5} more (listed in stats.json)")
     timings = stats.get("timings_s", {})
     lines.append("  time               " + ", ".join(f"{k} {v:.1f}s" for k, v in timings.items()))
     if stats.get("output"):

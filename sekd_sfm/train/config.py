@@ -7,6 +7,8 @@ schedule YAML -> user YAML file -> explicit overrides (``--rounds``, ``--set key
 from __future__ import annotations
 
 import dataclasses
+import math
+import os
 import typing
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -226,25 +228,106 @@ def resolve_config(schedule: str | None = None, config_file: Path | None = None,
     return config
 
 
+#: Inclusive ranges of numeric fields (None: unbounded on that side); ``_OPEN`` fields must exceed their low end.
+RANGES: dict[str, tuple[float | None, float | None]] = {
+    "seed": (0, None), "num_threads": (0, 1024), "num_workers": (0, 256),
+    "rounds": (1, 1000), "subset_factor": (1, 1000), "random_keypoints": (0, 100_000), "random_score": (0, 1),
+    "alpha_round0": (0, None), "long_side": (0, 8192), "size_multiple": (4, 256),
+    "crop_height": (16, 4096), "crop_width": (16, 4096), "batch_size": (1, 4096),
+    "num_warps": (0, 256), "border_band": (0, 1000), "nms_radius": (0, 100), "max_keypoints": (1, 100_000),
+    "det_threshold": (0, 1), "rel_threshold": (0, None), "rel_min_keypoints": (0, None),
+    "det_border_factor": (0, None), "rel_border_factor": (0, None), "rel_radius": (1, 100), "rel_stride": (1, 100),
+    "rel_rep_eps": (0, None), "rel_dist_eps": (0, None), "rel_count_eps": (0, None), "label_chunk": (1, 4096),
+    "epochs_desc": (1, 10_000), "epochs_det": (1, 10_000), "ratio_threshold": (0, None), "margin": (0, None),
+    "neg_min_distance": (0, None), "neg_self_penalty": (0, None), "neg_min_pixels": (0, None),
+    "spread_weight": (0, None), "alpha": (0, None), "focal_gamma": (0, None), "beta": (0, None),
+    "lambda_keep": (0, None), "lr": (0, 10), "weight_decay": (0, None), "plateau_factor": (0, 1),
+    "plateau_patience": (0, None), "plateau_threshold": (0, None),
+    "val_long_side": (0, 8192), "val_max_keypoints": (1, 100_000), "val_threshold": (0, 1), "val_nms_radius": (0, 100),
+}
+_OPEN = ("lr", "plateau_factor", "ratio_threshold", "margin", "rel_rep_eps", "rel_count_eps")
+#: Ranges [low, high] of the augmentation draws, with the bounds their values must stay within.
+RANGE_PAIRS = {"brightness": (0, None), "contrast": (0, None), "saturation": (0, None), "hue": (-0.5, 0.5),
+               "rotation_deg": (-180, 180), "shear_deg": (-80, 80), "scale": (0.05, 20), "translation": (-1, 1)}
+
+
 def validate(config: TrainConfig) -> None:
-    """Reject values the training cannot run with (SekdError, one line)."""
+    """Reject values the training cannot run with, or would run with to no effect (SekdError, one line).
+
+    Types are already right (``coerce``); this checks choices, ranges and the relations
+    between fields. What needs the machine (memory) is checked by ``check_memory`` at run start.
+    """
     for key, allowed in CHOICES.items():
         if getattr(config, key) not in allowed:
             raise SekdError(f"config key {key!r}: {getattr(config, key)!r} is not one of {', '.join(allowed)}")
-    positive = ("rounds", "subset_factor", "batch_size", "crop_height", "crop_width", "max_keypoints",
-                "size_multiple", "val_max_keypoints", "rel_stride", "rel_radius")
-    for key in positive:
-        if getattr(config, key) < 1:
-            raise SekdError(f"config key {key!r} must be >= 1, got {getattr(config, key)}")
+    for key, (low, high) in RANGES.items():
+        value = getattr(config, key)
+        if not math.isfinite(value) or (low is not None and (value < low or (key in _OPEN and value <= low))) \
+                or (high is not None and value > high):
+            raise SekdError(f"config key {key!r} must be {_describe_range(key, low, high)}, got {value}")
     for key in ("crop_height", "crop_width", "size_multiple"):
         if getattr(config, key) % 4:
             raise SekdError(f"config key {key!r} must be a multiple of 4 (the network's stride)")
-    for key in ("brightness", "contrast", "saturation", "hue", "rotation_deg", "shear_deg", "scale", "translation"):
-        low_high = getattr(config, key)
-        if len(low_high) != 2 or low_high[0] > low_high[1]:
-            raise SekdError(f"config key {key!r} must be a range [low, high], got {low_high}")
+    for key, (low, high) in RANGE_PAIRS.items():
+        pair = getattr(config, key)
+        if len(pair) != 2 or not all(math.isfinite(v) for v in pair) or pair[0] > pair[1]:
+            raise SekdError(f"config key {key!r} must be a range [low, high], got {pair}")
+        if (low is not None and pair[0] < low) or (high is not None and pair[1] > high):
+            raise SekdError(f"config key {key!r} must lie within {_describe_range(key, low, high)}, got {pair}")
+    if config.long_side and (config.long_side < config.size_multiple):
+        raise SekdError(f"config key 'long_side' ({config.long_side}) must be 0 or >= size_multiple "
+                        f"({config.size_multiple})")
+    for key in ("crop_height", "crop_width"):
+        if config.long_side and getattr(config, key) > config.long_side:
+            raise SekdError(f"config key {key!r} ({getattr(config, key)}) must be <= long_side ({config.long_side}): "
+                            "training images are resized so their long side is long_side, the rest would be padding")
     if config.num_warps < 1 and not config.no_affine:
         raise SekdError("config key 'num_warps' must be >= 1 (step (c) needs a warped view)")
+    if config.round0_random and config.random_keypoints < 1:
+        raise SekdError("config key 'random_keypoints' must be >= 1 when round0_random is set")
+
+
+def _describe_range(key: str, low, high) -> str:
+    if low is not None and high is not None:
+        return f"in ({low}, {high}]" if key in _OPEN else f"between {low} and {high}"
+    return f"> {low}" if key in _OPEN else f">= {low}"
+
+
+#: Bytes of memory per pixel of one view in a training step: forward + backward of the network
+#: (about 3 KB, measured with ``fast_deconv`` on the CPU) plus the frozen reference forward (0.8 KB).
+TRAIN_BYTES_PER_PIXEL = 4000
+#: Bytes per pixel of one view in a labelling forward (no gradients; measured 0.75-0.8 KB).
+LABEL_BYTES_PER_PIXEL = 1000
+#: The process itself (torch, the model, cached images): a floor for the estimate.
+BASE_BYTES = 600 * 2**20
+
+
+def step_memory(config: TrainConfig) -> int:
+    """Estimated peak bytes of one training step (or one labelling chunk, if larger) in one process."""
+    train = 2 * config.batch_size * config.crop_height * config.crop_width * TRAIN_BYTES_PER_PIXEL
+    side = config.long_side or 4096  # 0 keeps the images' size: assume a large photo
+    label = config.label_chunk * side * side * LABEL_BYTES_PER_PIXEL
+    return BASE_BYTES + max(train, label)
+
+
+def physical_memory() -> int | None:
+    """Bytes of RAM of this machine (None where unknown)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_memory(config: TrainConfig, available: int | None = None) -> None:
+    """SekdError when one step would need more memory than the machine has (``available`` bytes, default its RAM)."""
+    available = physical_memory() if available is None else available
+    need = step_memory(config)
+    if available and need > 0.9 * available:
+        raise SekdError(
+            f"config: one training step needs about {need / 2**30:.1f} GB (batch_size {config.batch_size} x 2 views "
+            f"of {config.crop_height} x {config.crop_width} px, label_chunk {config.label_chunk} views of "
+            f"{config.long_side or 'full-size'} px) but this machine has {available / 2**30:.1f} GB; lower "
+            "crop_height/crop_width, batch_size, label_chunk or long_side")
 
 
 def differing_fields(a: TrainConfig, b: TrainConfig, ignore: typing.Iterable[str] = ()) -> list[str]:

@@ -5,17 +5,22 @@ training steps (b descriptor, d detector), each tagged with its round. ``sekd ev
 runs all rounds; ``sekd train`` runs one labelling step and one training step. After
 every task the run folder records it as done; training steps also save their state
 after every epoch, so ``--resume`` continues a crashed or interrupted run and reaches
-the same model as an uninterrupted one.
+the same model as an uninterrupted one. ``state.json`` records the image list (count and
+checksum of names and sizes): a resume on a changed image folder is refused, since labels
+are stored by image index.
 
 Run folder::
 
     config.yaml  state.json  train.log  history.json  losses.csv  labels.csv
     metrics.json  metrics.csv  curves.png  best.pth  last.pth
+    .lock (held by the running process: a second run on the folder is refused)
     labels/r{k}_{a0|a|c}.npz       models/r{k}_{b|d}.pth
     checkpoints/r{k}_{b|d}_e{n}.pth  checkpoints/resume.pt
 """
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import logging
 import os
@@ -25,7 +30,9 @@ from pathlib import Path
 import torch
 
 from ..errors import SekdError
-from .config import RUNTIME_FIELDS, TrainConfig, apply, load_run_config
+from ..images import list_images
+from ..locking import exclusive_lock
+from .config import RUNTIME_FIELDS, TrainConfig, apply, check_memory, load_run_config
 from .config import validate as validate_config
 from .data import TrainImages, subset_indices
 from .distributed import Context, barrier, setup
@@ -122,11 +129,11 @@ class RunFolder:
         state = json.loads(self.state_path.read_text())
         return config, [Task(**t) for t in state["tasks"]], state
 
-    def create(self, config: TrainConfig, tasks: list[Task]) -> dict:
+    def create(self, config: TrainConfig, tasks: list[Task], images: dict | None = None) -> dict:
         for sub in ("labels", "models", "checkpoints"):
             (self.root / sub).mkdir(parents=True, exist_ok=True)
         write_atomic(self.root / "config.yaml", config.to_yaml())
-        state = {"tasks": [asdict(t) for t in tasks], "done": [], "best": None}
+        state = {"tasks": [asdict(t) for t in tasks], "done": [], "best": None, "images": images}
         self.save_state(state)
         return state
 
@@ -143,7 +150,7 @@ class RunFolder:
     def save_epoch(self, task: Task, epoch: int, state: dict, net, cfg: TrainConfig) -> None:
         if cfg.keep_epoch_checkpoints:
             export(net, self.root / "checkpoints" / f"{task.id}_e{epoch + 1}.pth", meta_of(task, cfg, epoch))
-        tmp = self.resume_path.with_name("resume.pt.tmp")
+        tmp = self.resume_path.with_name(f"resume.pt.{os.getpid()}.tmp")
         torch.save({**state, "task": task.id}, tmp)
         os.replace(tmp, self.resume_path)
 
@@ -287,6 +294,49 @@ def run_tasks(out: Path, config: TrainConfig | None, tasks: list[Task] | None, r
     ``runtime`` may change only the hardware fields (device, threads, workers, progress).
     """
     folder = RunFolder(out)
+    if resume and not folder.state_path.is_file():
+        folder.read(runtime)  # SekdError: nothing to resume (before creating anything)
+    with _run_lock(folder.root):
+        return _run_locked(folder, config, tasks, resume, runtime)
+
+
+def _run_lock(root: Path):
+    """The run folder's exclusive lock, taken by the first process of a (possibly distributed) job.
+
+    A second ``sekd evolve``/``train`` on the same folder is refused with the holder's PID
+    (it would interleave checkpoints and history writes).
+    """
+    if int(os.environ.get("RANK", "0")) != 0:
+        return contextlib.nullcontext()
+    Path(root).mkdir(parents=True, exist_ok=True)  # so the lock is always <folder>/.lock
+    return exclusive_lock(root, what="run folder")
+
+
+def image_fingerprint(root: str | Path) -> dict:
+    """Count and SHA-256 of the sorted image keys with their sizes in bytes: what labels are indexed by."""
+    root = Path(root)
+    digest = hashlib.sha256()
+    keys = list_images(root)
+    for key in keys:
+        digest.update(f"{key}\t{(root / key).stat().st_size}\n".encode())
+    return {"count": len(keys), "sha256": digest.hexdigest()}
+
+
+def _check_images(folder: RunFolder, config: TrainConfig, state: dict) -> dict:
+    """Refuse to resume on a changed image folder (labels are stored by image index); record the list if new."""
+    current = image_fingerprint(config.images)
+    saved = state.get("images")
+    if saved is not None and saved != current:
+        what = (f"{saved['count']} images then, {current['count']} now" if saved["count"] != current["count"]
+                else f"the same {current['count']} images in number, but files renamed or changed")
+        raise SekdError(
+            f"{config.images}: the training images changed since this run started ({what}); its labels are "
+            f"indexed by the old list: restore the images or start a new run in another --out")
+    return current
+
+
+def _run_locked(folder: RunFolder, config: TrainConfig | None, tasks: list[Task] | None, resume: bool,
+                runtime: dict | None) -> RunResult:
     if resume:
         config, tasks, state = folder.read(runtime)
     else:
@@ -294,12 +344,19 @@ def run_tasks(out: Path, config: TrainConfig | None, tasks: list[Task] | None, r
         validate_config(config)
         state = None
     _check_inputs(config, tasks)
+    check_memory(config)
+    images = _check_images(folder, config, state or {})
     ctx = setup(config.device, config.num_threads)
     if config.batch_size % ctx.world:
         raise SekdError(f"batch_size {config.batch_size} must be a multiple of the {ctx.world} processes")
     barrier(ctx)  # every process has checked the folder before the first one writes to it
     if state is None:
-        state = folder.create(config, tasks) if ctx.main else {"tasks": [asdict(t) for t in tasks], "done": [], "best": None}
+        state = folder.create(config, tasks, images) if ctx.main else {"tasks": [asdict(t) for t in tasks], "done": [],
+                                                                       "best": None, "images": images}
+    elif state.get("images") is None:  # a run started before image lists were recorded: record it now
+        state["images"] = images
+        if ctx.main:
+            folder.save_state(state)
     barrier(ctx)
     handler = _log_to_file(folder.root / "train.log") if ctx.main else None
     try:

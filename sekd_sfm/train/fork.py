@@ -63,7 +63,8 @@ def fork_run(source: Path, out: Path, overrides: dict) -> Path:
     best = _best(history, config)
     _copy_outputs(src, dst, reused, best)
     state = {"tasks": [dataclasses.asdict(t) for t in tasks], "done": ids, "best": best,
-             "forked_from": {"run": _relative(source, dst.root), "after": ids[-1], "changed": changed}}
+             "forked_from": {"run": _relative(source, dst.root), "after": ids[-1], "changed": changed},
+             "images": old_state.get("images")}
     write_atomic(dst.root / "config.yaml", config.to_yaml())
     write_atomic(dst.root / "history.json", json.dumps(history, indent=1))
     write_atomic(dst.root / "train.log", _log_upto(src.root / "train.log", reused, source, changed, config))

@@ -66,7 +66,7 @@ class Labels:
             "scores": np.concatenate([self.scores[i] for i in order] or [np.zeros(0, np.float32)]),
         }
         arrays.update({f"map_{i}": m for i, m in self.maps.items()})
-        tmp = path.with_name(path.name + ".tmp")
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # PID: never shared with another process
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
         os.replace(tmp, path)

@@ -17,8 +17,11 @@ SECTIONS = {"epochs": ("round", "kind", "epoch"), "labels": ("task",), "validati
 
 
 def write_atomic(path: Path, data: str | bytes) -> None:
-    """Write to a temporary file beside ``path`` and rename it over ``path``."""
-    tmp = path.with_name(path.name + ".tmp")
+    """Write to a temporary file beside ``path`` and rename it over ``path``.
+
+    The temporary name holds the PID, so two processes never write the same temporary file.
+    """
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
     tmp.write_bytes(data.encode() if isinstance(data, str) else data)
     os.replace(tmp, path)
 

@@ -1,0 +1,161 @@
+#!/usr/bin/env bash
+# Ray versus local extraction throughput on one machine, and the driver's merge capacity.
+#
+# Starts a two-raylet Ray cluster (1 CPU each) inside a network namespace (loopback only,
+# so nothing binds an outward address; needs root and iproute2), then extracts the same
+# photos with `--executor local` and `--executor ray`, alternately, ROUNDS times each, and
+# measures how many results per second the driver can save (the merge side), to project
+# the scaling to 8, 64 and 512 workers. Wall-clock rates depend on what else the machine
+# runs; CPU seconds per image (cgroup v1 cpuacct: every process of the local run, or of the
+# whole Ray cluster and its driver) do much less, and give Ray's overhead in CPU.
+# Results: $OUT/bench_ray.txt (numbers in docs/cluster.md).
+#
+# Usage: pipelines/bench_ray.sh [N_IMAGES [RESIZE_MAX]]
+#   IMAGES=folder   photos to extract (default: $SEKD_SHARED/data/train/coco)
+#   OUT=folder      work folder (default: a new temporary folder)
+#   ROUNDS=2        local/ray pairs of runs
+set -euo pipefail
+
+N=${1:-200}
+RESIZE=${2:-640}
+ROUNDS=${ROUNDS:-2}
+SHARED=${SEKD_SHARED:-$(cd "$(dirname "$0")/../.." && pwd)/shared}
+IMAGES=${IMAGES:-$SHARED/data/train/coco}
+OUT=${OUT:-$(mktemp -d)}
+NS=sekdbench$$
+PORT=$((21000 + $$ % 20000))
+TEMP=/tmp/sekdbench$$
+CG=/sys/fs/cgroup/cpuacct/sekdbench$$   # CPU accounting of each side
+mkdir -p "$OUT/images"
+REPORT="$OUT/bench_ray.txt"
+
+stop() {  # every process of the namespace is ours (Ray's); stop them by PID, then remove it
+  for sig in TERM KILL; do
+    for pid in $(ip netns pids "$NS" 2>/dev/null); do kill -s $sig "$pid" 2>/dev/null || true; done
+    sleep 2
+  done
+  ip netns del "$NS" 2>/dev/null || true
+  rm -rf "$TEMP"
+  rmdir "$CG/local" "$CG/ray" "$CG" 2>/dev/null || true
+}
+trap stop EXIT
+
+ls "$IMAGES" | grep -iE '\.(jpe?g|png)$' | head -n "$N" | while read -r f; do ln -sf "$IMAGES/$f" "$OUT/images/$f"; done
+COUNT=$(ls "$OUT/images" | wc -l)
+
+mkdir -p "$CG/local" "$CG/ray"
+in_cg() { local group=$1; shift; sh -c 'echo $$ > "$0/cgroup.procs"; shift; exec "$@"' "$CG/$group" - "$@"; }
+cpu() { cat "$CG/$1/cpuacct.usage"; }   # nanoseconds
+
+ip netns add "$NS"
+ip netns exec "$NS" ip link set lo up
+COMMON=(--num-cpus 1 --object-store-memory $((1 << 30)) --disable-usage-stats)
+in_cg ray ip netns exec "$NS" ray start --head --port "$PORT" --include-dashboard=false --temp-dir "$TEMP" "${COMMON[@]}" >"$OUT/ray_head.log" 2>&1
+in_cg ray ip netns exec "$NS" ray start --address "127.0.0.1:$PORT" "${COMMON[@]}" >"$OUT/ray_node.log" 2>&1
+
+run() {  # run NAME GROUP CMD...: "wall-clock-seconds cpu-seconds" of one extraction into $OUT/NAME.h5
+  local name=$1 group=$2; shift 2
+  local t0 t1 c0 c1
+  c0=$(cpu "$group"); t0=$(date +%s.%N)
+  in_cg "$group" "$@" "$OUT/images" -o "$OUT/$name.h5" --resize-max "$RESIZE" --overwrite --no-progress \
+    2>"$OUT/$name.log" >/dev/null
+  t1=$(date +%s.%N); c1=$(cpu "$group")
+  echo "$(echo "$t1 - $t0" | bc -l) $(echo "($c1 - $c0) / 10^9" | bc -l)"
+}
+row() {  # row NAME "WALL CPU" [NOTE]
+  set -- "$1" $2 "${3:-}"
+  printf "%-8s %8.1f %9.3f %8.1f %8.2f  %s\n" "$1" "$2" "$(echo "$COUNT / $2" | bc -l)" "$3" \
+    "$(echo "$3 / $COUNT" | bc -l)" "$4" | tee -a "$REPORT"
+}
+
+{
+  echo "# sekd extract: $COUNT photos at --resize-max $RESIZE; $(nproc) cores; $(date -u +%FT%TZ)"
+  echo "# local = --executor local (torch threads on all cores, the default); local-1t = --num-threads 1 (one core);"
+  echo "# ray = --executor ray: 2 raylets x 1 CPU, 2 workers x 1 thread, in netns $NS"
+  echo "# load average before: $(cut -d' ' -f1-3 /proc/loadavg)"
+  printf "%-8s %8s %9s %8s %8s  %s\n" run seconds images/s cpu-s cpu-s/img "(ray: the driver's own summary)"
+} | tee "$REPORT"
+for round in $(seq "$ROUNDS"); do
+  row "local$round" "$(run "local$round" local sekd extract)"
+  row "1t-$round" "$(run "1t-$round" local sekd extract --num-threads 1)"
+  r=$(run "ray$round" ray ip netns exec "$NS" sekd extract --executor ray --ray-address "127.0.0.1:$PORT")
+  row "ray$round" "$r" "$(grep -o "Ray: [0-9].*" "$OUT/ray$round.log" | tail -1)"
+done
+echo "# load average after: $(cut -d' ' -f1-3 /proc/loadavg)" | tee -a "$REPORT"
+
+# Same files? Ray workers run 1 torch thread, so they must equal --num-threads 1 byte for byte;
+# torch's last bits depend on the thread count, so the default local run may differ in a few images.
+python - "$OUT/1t-1.h5" "$OUT/ray1.h5" "$OUT/local1.h5" <<'EOF' | tee -a "$REPORT"
+import sys, h5py
+def contents(path):
+    out = {}
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda n, o: out.__setitem__(n, o[()].tobytes()) if isinstance(o, h5py.Dataset) else None)
+    return out
+one, ray, default = (contents(p) for p in sys.argv[1:])
+print("identical arrays ray1 vs local --num-threads 1:", one == ray, f"({len(one)} arrays)")
+print("images differing between local (2 threads) and local --num-threads 1:",
+      len({k.split("/")[0] for k in one if one[k] != default.get(k)}))
+EOF
+
+# Driver capacity: (1) saving results as parts and the final merge into the HDF5 file, from
+# the arrays of local1.h5; (2) Ray Data delivering result rows of the same size to the driver
+# (identity workers, no model), i.e. the whole driver side of a run with free workers.
+python - "$OUT/local1.h5" "$OUT/merge" <<'EOF' | tee -a "$REPORT"
+import shutil, sys, time
+from pathlib import Path
+import h5py
+from sekd_sfm import featurefile as ff
+from sekd_sfm.cluster import _pack, _unpack
+src, work = Path(sys.argv[1]), Path(sys.argv[2])
+shutil.rmtree(work, ignore_errors=True); work.mkdir()
+keys = ff.list_keys(src)
+items = [(k, ff.read_features(src, k)) for k in keys]
+payloads = [(k, _pack(a)) for k, a in items]
+mb = sum(len(p) for _, p in payloads) / 1e6
+out = work / "merged.h5"
+ff.create_empty(out, dict(h5py.File(src, "r").attrs))
+parts = ff.PartStore(out)
+t0 = time.perf_counter()
+for key, payload in payloads:
+    parts.save(key, _unpack(payload))
+parts.flush()
+t1 = time.perf_counter()
+ff.merge_parts(out, parts)
+t2 = time.perf_counter()
+n = len(items)
+print(f"merge: {n} results, {mb:.1f} MB ({mb / n:.2f} MB each)")
+print(f"merge: save as parts {n / (t1 - t0):.0f} items/s ({mb / (t1 - t0):.0f} MB/s); "
+      f"final merge into HDF5 {n / (t2 - t1):.0f} items/s ({mb / (t2 - t1):.0f} MB/s); "
+      f"both {n / (t2 - t0):.0f} items/s")
+EOF
+
+RAY_BACKEND_LOG_LEVEL=fatal ip netns exec "$NS" python - "127.0.0.1:$PORT" "$OUT/local1.h5" <<'EOF' | tee -a "$REPORT"
+import logging, sys, time
+import numpy as np, ray
+from sekd_sfm import featurefile as ff
+from sekd_sfm.cluster import _pack
+ray.init(address=sys.argv[1], log_to_driver=False, logging_level=logging.WARNING)
+ray.data.DataContext.get_current().enable_progress_bars = False
+ray.data.DataContext.get_current().print_on_execution_start = False
+logging.getLogger("ray.data").setLevel(logging.ERROR)
+keys = ff.list_keys(sys.argv[2])
+payload = _pack(ff.read_features(sys.argv[2], keys[0]))
+n = 2000
+class Echo:  # a worker that returns result-sized rows at once: only the pipeline and the driver cost
+    def __call__(self, batch):
+        k = len(batch["key"])
+        return {"key": batch["key"], "payload": np.array([payload] * k, dtype=object),
+                "error": np.array([""] * k, dtype=object), "fatal": np.zeros(k, bool)}
+ds = ray.data.from_items([{"key": f"img{i}"} for i in range(n)], override_num_blocks=n // 4)
+ds = ds.map_batches(Echo, batch_size=4, batch_format="numpy", compute=ray.data.ActorPoolStrategy(size=2), num_cpus=1)
+t0 = time.perf_counter(); first = None; count = 0
+for batch in ds.iter_batches(batch_size=None, batch_format="numpy"):  # as sekd_sfm.cluster reads them
+    if first is None:
+        first, skip = time.perf_counter(), len(batch["key"])
+    count += len(batch["key"])
+t1 = time.perf_counter()
+print(f"ray data to driver: {count} rows of {len(payload) / 1e6:.2f} MB, {(count - skip) / (t1 - first):.0f} rows/s "
+      f"({(count - skip) * len(payload) / 1e6 / (t1 - first):.0f} MB/s) after the first block")
+EOF
+echo "report: $REPORT"

@@ -1,0 +1,448 @@
+"""``sekd bench scale``: our pipeline and pycolmap's SIFT pipeline on generated scenes of growing size.
+
+For each size N, in ``OUT/n<N>/``:
+
+1. ``scene/``: a generated scene of N photos (``scene.SceneConfig``; about 3% distractors).
+2. ``ours/``: ``sfm.reconstruct.reconstruct`` with its defaults (whatever pair selection,
+   mapper and camera sharing they choose), run in its own process; its stages (extract,
+   pairs, match, database, verification, mapping) are cut out of one sampled timeline.
+3. ``pycolmap/``: pycolmap's own pipeline on the same photos: SIFT extraction, SIFT matching
+   of the *same pairs* our pipeline chose (exhaustive when it chose all pairs), geometric
+   verification and incremental mapping; each stage in its own process. All photos come
+   from one camera, so this pipeline is told so (``CameraMode.SINGLE``).
+
+Per stage: wall time, peak RSS, bytes written (``measure``). Per pipeline: registered
+scene photos, registered distractors, pose AUC@5/10/20 deg over all pairs of scene photos
+(relative rotation and translation direction against the generated cameras, the larger
+of the two; a pair with an unregistered photo counts as a failure), and the same over
+the truly co-visible pairs. The recall of our pairs against the ground-truth co-visible
+pairs is reported too. Finished sizes are kept (``n<N>/result.json``) and skipped on a
+rerun; ``results.json``, ``results.md`` and ``scale.png`` cover every finished size.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import shutil
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import SekdError
+from ..metrics import pose_auc
+from .measure import Measurement, run_measured
+from .scene import SceneConfig, generate_scene, read_covisibility, read_scene
+
+logger = logging.getLogger("sekd")
+OUR_STAGES = {"extract": "extract", "pairs": "pairs", "match": "match", "database": "import",
+              "verification": "verify", "mapping": "map"}
+STAGES = ("generate", "extract", "pairs", "match", "import", "verify", "map")
+MB = 1024 * 1024
+
+
+@dataclass
+class ScaleConfig:
+    """Sizes (photos per scene, distractors included) and the scene / baseline settings."""
+
+    sizes: tuple[int, ...] = (250, 500, 1000)
+    image_size: int = 640
+    spacing: float = 1.5
+    seed: int = 0
+    baseline: bool = True
+    num_threads: int | None = None
+    min_overlap: float = 0.1     # ground-truth co-visible pair: shares this fraction of the smaller view
+    textures: str | None = None
+
+
+# ----------------------------------------------------------------------------- stages run in child processes
+
+def _generate(scene_dir: str, config: SceneConfig) -> dict:
+    path = generate_scene(scene_dir, config, progress=False)
+    return {"generation_s": json.loads(Path(path).read_text())["generation_s"]}
+
+
+def _ours(image_dir: str, work: str, config, num_threads: int | None) -> dict:
+    import time
+
+    from ...sfm.reconstruct import ReconstructionError, reconstruct
+
+    start = time.time()  # after the imports (torch): the stage timeline starts here
+    try:
+        reconstruct(image_dir, work, config, num_threads=num_threads, progress=False)
+    except ReconstructionError as exc:
+        return {"failure": str(exc).splitlines()[0], "start": start}
+    return {"failure": None, "start": start}
+
+
+def _colmap_extract(database: str, image_dir: str, max_image_size: int, num_threads: int | None) -> dict:
+    import pycolmap  # not sekd_sfm.sfm, which loads torch: the baseline's memory is pycolmap's alone
+
+    options = pycolmap.FeatureExtractionOptions()
+    options.max_image_size, options.num_threads = max_image_size, num_threads or -1
+    pycolmap.extract_features(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE,
+                              extraction_options=options, device=pycolmap.Device.cpu)
+    return {}
+
+
+def _colmap_match(database: str, pairs_path: str | None, num_threads: int | None) -> dict:
+    import pycolmap  # not sekd_sfm.sfm, which loads torch: the baseline's memory is pycolmap's alone
+
+    options = pycolmap.FeatureMatchingOptions()
+    options.num_threads = num_threads or -1
+    options.skip_geometric_verification = True  # verification is its own stage, measured apart
+    if pairs_path is None:
+        pycolmap.match_exhaustive(database, matching_options=options, device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = pairs_path
+        pycolmap.match_image_pairs(database, matching_options=options, pairing_options=pairing,
+                                   device=pycolmap.Device.cpu)
+    return {}
+
+
+def _colmap_verify(database: str, num_threads: int | None) -> dict:
+    import pycolmap  # not sekd_sfm.sfm, which loads torch: the baseline's memory is pycolmap's alone
+
+    options = pycolmap.GeometricVerifierOptions()
+    options.num_threads = num_threads or -1
+    pycolmap.geometric_verification(database, verifier_options=options)
+    return {}
+
+
+def _colmap_map(database: str, image_dir: str, model_dir: str, seed: int) -> dict:
+    import pycolmap  # not sekd_sfm.sfm, which loads torch: the baseline's memory is pycolmap's alone
+
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = seed
+    pycolmap.set_random_seed(seed)
+    scratch = Path(model_dir).parent / "mapping-scratch"
+    shutil.rmtree(scratch, ignore_errors=True)
+    scratch.mkdir(parents=True)
+    found = pycolmap.incremental_mapping(database, image_dir, str(scratch), options)
+    shutil.rmtree(scratch, ignore_errors=True)
+    models = sorted(found.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
+    if models:
+        Path(model_dir).mkdir(parents=True, exist_ok=True)
+        models[0].write_binary(model_dir)
+    return {"models": len(models)}
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+def registered_poses(model_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """World-to-camera ``(R, t)`` of the registered images of a COLMAP model folder (empty if none)."""
+    if not (model_dir / "images.bin").is_file() and not (model_dir / "images.txt").is_file():
+        return {}
+    from ...sfm.colmap import require_pycolmap
+    from ..sfm import poses_of
+
+    return poses_of(require_pycolmap().Reconstruction(str(model_dir)))
+
+
+def pair_errors(estimated: dict, truth: dict, names: list[str], pairs: np.ndarray) -> np.ndarray:
+    """Pose error (deg, max of rotation and translation direction) of each index pair ``P x 2`` of ``names``.
+
+    Pairs with an unregistered image get ``inf``. ``truth`` maps name -> scene.Camera.
+    """
+    if len(pairs) == 0:
+        return np.zeros(0)
+    Rg = np.stack([truth[n].R for n in names])
+    tg = np.stack([truth[n].t for n in names])
+    known = np.array([n in estimated for n in names])
+    Re = np.stack([estimated[n][0] if n in estimated else np.eye(3) for n in names])
+    te = np.stack([estimated[n][1] if n in estimated else np.zeros(3) for n in names])
+    i, j = pairs[:, 0], pairs[:, 1]
+
+    def relative(R, t):
+        Rij = R[j] @ np.transpose(R[i], (0, 2, 1))
+        return Rij, t[j] - np.einsum("pab,pb->pa", Rij, t[i])
+
+    (Rr_e, tr_e), (Rr_g, tr_g) = relative(Re, te), relative(Rg, tg)
+    cos_r = (np.einsum("pab,pab->p", Rr_e, Rr_g) - 1) / 2  # trace(Re^T Rg) = sum of elementwise products
+    rot = np.degrees(np.arccos(np.clip(cos_r, -1, 1)))
+    norms = np.linalg.norm(tr_e, axis=1) * np.linalg.norm(tr_g, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos_t = np.where(norms > 0, np.einsum("pa,pa->p", tr_e, tr_g) / norms, -1.0)
+    trans = np.degrees(np.arccos(np.clip(cos_t, -1, 1)))
+    errors = np.maximum(rot, trans)
+    errors[~(known[i] & known[j])] = np.inf
+    return errors
+
+
+def evaluate_model(model_dir: Path, scene: dict, covisible: dict) -> dict:
+    """Registered photos, registered distractors and pose AUCs of one pipeline's main model."""
+    estimated = registered_poses(model_dir)
+    truth = scene["cameras"]
+    names = sorted(truth)
+    index = {n: k for k, n in enumerate(names)}
+    m = len(names)
+    all_pairs = np.array([(a, b) for a in range(m) for b in range(a + 1, m)], np.int64).reshape(-1, 2)
+    covis = np.array(sorted(tuple(sorted(index[n] for n in p)) for p in covisible), np.int64).reshape(-1, 2)
+    errors, errors_covis = pair_errors(estimated, truth, names, all_pairs), pair_errors(estimated, truth, names, covis)
+    finite = errors[np.isfinite(errors)]
+    result = {"registered": sum(n in estimated for n in names), "scene_images": m,
+              "registered_distractors": sorted(set(estimated) & set(scene["distractors"])),
+              "median_pose_error_deg": float(np.median(finite)) if finite.size else None}
+    for limit in (5, 10, 20):
+        result[f"auc{limit}"] = pose_auc(errors.tolist(), limit)
+        result[f"auc{limit}_covisible"] = pose_auc(errors_covis.tolist(), limit)
+    return result
+
+
+def pairs_recall(pairs: list[tuple[str, str]], covisible: dict) -> dict:
+    """Recall of the ground-truth co-visible pairs by ``pairs``, and the share of ``pairs`` that are co-visible."""
+    chosen = {frozenset(p) for p in pairs}
+    hit = len(chosen & set(covisible))
+    return {"pairs": len(chosen), "covisible_pairs": len(covisible),
+            "recall": hit / len(covisible) if covisible else None,
+            "precision": hit / len(chosen) if chosen else None}
+
+
+def folder_bytes(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else 0
+
+
+def _stage_record(m: Measurement) -> dict:
+    return {"time_s": round(m.wall_s, 3), "cpu_s": round(m.cpu_s, 2), "peak_rss_mb": round(m.peak_rss / MB, 1),
+            "written_mb": round(m.bytes_written / MB, 2)}
+
+
+# ----------------------------------------------------------------------------- one size
+
+def run_ours(scene_dir: Path, work: Path, config, num_threads: int | None) -> dict:
+    """Our pipeline from scratch; per-stage records cut out of one sampled process timeline."""
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    m = run_measured(_ours, (str(scene_dir / "images"), str(work), config, num_threads), work / "measure.json")
+    stats = json.loads((work / "stats.json").read_text()) if (work / "stats.json").is_file() else {}
+    timings = {k: v for k, v in stats.get("timings_s", {}).items() if k != "total"}
+    start = (m.result or {}).get("start", m.start)
+    stages, clock = {}, start
+    for stage, seconds in timings.items():
+        window = m.window(clock, clock + seconds)
+        stages[OUR_STAGES.get(stage, stage)] = {"time_s": round(seconds, 3), "cpu_s": round(window["cpu_s"], 2),
+                                                "peak_rss_mb": round(window["peak_rss"] / MB, 1),
+                                                "written_mb": round(window["bytes_written"] / MB, 2)}
+        clock += seconds
+    failure = m.error or (m.result or {}).get("failure")
+    return {"stages": stages, "wall_s": round(m.wall_s - (start - m.start), 2),
+            "cpu_s": round(sum(s["cpu_s"] for s in stages.values()), 2),
+            "peak_rss_mb": round(m.peak_rss / MB, 1), "written_mb": round(m.bytes_written / MB, 2),
+            "disk_mb": round(folder_bytes(work) / MB, 2), "failure": failure, "matches": stats.get("matches"), "config": stats.get("config"),
+            "model": str(work / "model")}
+
+
+def run_pycolmap(scene_dir: Path, work: Path, pairs: list[tuple[str, str]], num_images: int, seed: int,
+                 num_threads: int | None, max_image_size: int) -> dict:
+    """pycolmap's SIFT pipeline on the same photos and pairs, each stage in its own process."""
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    database, images = str(work / "database.db"), str(scene_dir / "images")
+    exhaustive = len(pairs) == num_images * (num_images - 1) // 2
+    pairs_path = None
+    if not exhaustive:  # COLMAP's imported pairs: "name0 name1" per line
+        pairs_path = work / "pairs-colmap.txt"
+        pairs_path.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    steps = [("extract", _colmap_extract, (database, images, max_image_size, num_threads)),
+             ("match", _colmap_match, (database, str(pairs_path) if pairs_path else None, num_threads)),
+             ("verify", _colmap_verify, (database, num_threads)),
+             ("map", _colmap_map, (database, images, str(work / "model"), seed))]
+    stages, failure, wall, cpu, peak, written = {}, None, 0.0, 0.0, 0, 0
+    for stage, target, args in steps:
+        m = run_measured(target, args, work / f"measure-{stage}.json")
+        stages[stage] = _stage_record(m)
+        wall, cpu, peak, written = wall + m.wall_s, cpu + m.cpu_s, max(peak, m.peak_rss), written + m.bytes_written
+        if m.error:
+            failure = f"{stage}: {m.error}"
+            break
+    return {"stages": stages, "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "peak_rss_mb": round(peak / MB, 1),
+            "written_mb": round(written / MB, 2), "disk_mb": round(folder_bytes(work) / MB, 2), "failure": failure,
+            "matcher": "exhaustive" if exhaustive else "imported pairs", "model": str(work / "model")}
+
+
+def run_size(out: Path, size: int, config: ScaleConfig, reconstruct_config) -> dict:
+    """Generate the scene of ``size`` photos and run both pipelines on it; writes ``result.json``."""
+    scene_dir = out / "scene"
+    scene_config = SceneConfig(num_images=size, image_size=config.image_size, spacing=config.spacing,
+                               seed=config.seed, textures=config.textures)
+    generation = None
+    if not (scene_dir / "scene.json").is_file():
+        m = run_measured(_generate, (str(scene_dir), scene_config), out / "measure-generate.json")
+        if m.error:
+            raise SekdError(f"{scene_dir}: scene generation failed: {m.error}")
+        generation = _stage_record(m)
+    scene = read_scene(scene_dir)
+    covisible = read_covisibility(scene_dir, config.min_overlap)
+    result = {"size": size, "scene_images": len(scene["cameras"]), "distractors": scene["distractors"],
+              "generate": generation or {"time_s": scene["generation_s"]}, "scene": scene["config"]}
+    logger.info("n=%d: our pipeline", size)
+    ours = run_ours(scene_dir, out / "ours", reconstruct_config, config.num_threads)
+    from ...pairs import read_pairs
+
+    pairs = read_pairs(out / "ours" / "pairs.txt") if (out / "ours" / "pairs.txt").is_file() else []
+    ours.update(evaluate_model(Path(ours["model"]), scene, covisible))
+    result["pairs"] = pairs_recall(pairs, covisible)
+    result["pairs"]["mode"] = ((ours.get("config") or {}).get("pairs") or {}).get("mode")
+    try:  # the same figure from the pairs module's own helper, when this version has it (a cross-check)
+        from ...retrieval import pair_recall
+
+        truth: dict[str, set[str]] = {}
+        for a, b in (tuple(p) for p in covisible):
+            truth.setdefault(a, set()).add(b)
+            truth.setdefault(b, set()).add(a)
+        result["pairs"]["recall_retrieval_module"] = pair_recall(pairs, truth) if truth else None
+    except ImportError:
+        pass
+    result["ours"] = ours
+    if config.baseline and pairs:
+        logger.info("n=%d: pycolmap SIFT pipeline on %d pairs", size, len(pairs))
+        base = run_pycolmap(scene_dir, out / "pycolmap", pairs, size, config.seed, config.num_threads,
+                            reconstruct_config.features.resize_max or 3200)
+        base.update(evaluate_model(Path(base["model"]), scene, covisible))
+        result["pycolmap"] = base
+    return result
+
+
+# ----------------------------------------------------------------------------- whole benchmark
+
+def run_scale_benchmark(output_dir: str | Path, config: ScaleConfig, reconstruct_config=None) -> Path:
+    """Every size of ``config`` (finished ones skipped); writes results.json/.md and scale.png. Returns results.json."""
+    from ...sfm.reconstruct import ReconstructConfig
+
+    reconstruct_config = reconstruct_config or ReconstructConfig()
+    out = Path(output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for size in sorted(config.sizes):
+        folder = out / f"n{size}"
+        done = folder / "result.json"
+        if done.is_file():
+            logger.info("n=%d: finished earlier (%s), skipped", size, done)
+            continue
+        folder.mkdir(exist_ok=True)
+        result = run_size(folder, size, config, reconstruct_config)
+        from ...runtime import package_versions
+
+        result["settings"] = {**asdict(replace(config, sizes=tuple(config.sizes))), "versions": package_versions()}
+        tmp = done.with_name("result.json.tmp")
+        tmp.write_text(json.dumps(result, indent=1, default=str))
+        tmp.replace(done)
+    return write_report(out)
+
+
+def load_results(out: Path) -> list[dict]:
+    """Every finished size below ``out``, smallest first."""
+    results = [json.loads(p.read_text()) for p in out.glob("n*/result.json")]
+    return sorted(results, key=lambda r: r["size"])
+
+
+def growth_exponent(sizes: list[int], values: list[float]) -> float | None:
+    """Slope of log(value) against log(size) by least squares; None with fewer than 2 positive points."""
+    points = [(math.log(s), math.log(v)) for s, v in zip(sizes, values) if v and v > 0]
+    if len(points) < 2 or len({p[0] for p in points}) < 2:
+        return None
+    x, y = np.array(points).T
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def exponents(results: list[dict], pipeline: str, key: str = "time_s") -> dict[str, float | None]:
+    """Growth exponent of each stage's wall time (``key`` "time_s") or CPU time ("cpu_s"), and of the total."""
+    rows = [r for r in results if pipeline in r]
+    sizes = [r["size"] for r in rows]
+    names = [s for s in STAGES if any(s in r[pipeline]["stages"] for r in rows)]
+    fitted = {s: growth_exponent(sizes, [r[pipeline]["stages"].get(s, {}).get(key, 0) for r in rows])
+              for s in names}
+    fitted["total"] = growth_exponent(sizes, [r[pipeline].get("wall_s" if key == "time_s" else "cpu_s", 0)
+                                              for r in rows])
+    return fitted
+
+
+def write_report(out: Path) -> Path:
+    """results.json (every size and the exponents), results.md and scale.png from the finished sizes."""
+    results = load_results(out)
+    report = {"sizes": [r["size"] for r in results], "results": results,
+              "exponents": {p: exponents(results, p) for p in ("ours", "pycolmap")},
+              "cpu_exponents": {p: exponents(results, p, "cpu_s") for p in ("ours", "pycolmap")}}
+    path = out / "results.json"
+    path.write_text(json.dumps(report, indent=1, default=str))
+    (out / "results.md").write_text(scale_markdown(report))
+    if results:
+        plot_scale(report, out / "scale.png")
+    return path
+
+
+def _f(value, digits: int = 1) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def scale_markdown(report: dict) -> str:
+    """The benchmark's tables: one summary row per size and pipeline, stages per size, growth exponents."""
+    lines = [("Generated city-block scenes (N photos including ~3% distractors); our pipeline with its "
+              "defaults against pycolmap's SIFT pipeline on the same pairs. AUC over all pairs of scene "
+              "photos (an unregistered photo fails its pairs) and over the truly co-visible pairs."), "",
+             ("| N | pipeline | pairs | pair recall | registered | distractors registered | AUC@5 | AUC@5 co-visible "
+              "| median pose err (deg) | wall (s) | CPU (s) | peak RSS (MB) | written (MB) |"),
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in report["results"]:
+        for name, label in (("ours", "ours"), ("pycolmap", "pycolmap SIFT")):
+            if name not in r:
+                continue
+            p = r[name]
+            recall = _f(r["pairs"]["recall"], 3) if name == "ours" else "same pairs"
+            lines.append(f"| {r['size']} | {label} | {r['pairs']['pairs']} | {recall} | {p['registered']}/"
+                         f"{p['scene_images']} | {len(p['registered_distractors'])}/{len(r['distractors'])} "
+                         f"| {_f(p['auc5'], 3)} | {_f(p['auc5_covisible'], 3)} | {_f(p['median_pose_error_deg'], 2)} "
+                         f"| {_f(p['wall_s'])} | {_f(p.get('cpu_s'))} | {_f(p['peak_rss_mb'], 0)} "
+                         f"| {_f(p['written_mb'])} |"
+                         + (f" failure: {p['failure']}" if p.get("failure") else ""))
+    lines += ["", "Per stage: wall time (s) / CPU time (s) / peak RSS (MB) / bytes written (MB).", "",
+              "| N | pipeline | " + " | ".join(STAGES) + " |", "|---|---|" + "---|" * len(STAGES)]
+    for r in report["results"]:
+        gen = r.get("generate") or {}
+        for name in ("ours", "pycolmap"):
+            if name not in r:
+                continue
+            cells = []
+            for stage in STAGES:
+                s = gen if stage == "generate" and name == "ours" else r[name]["stages"].get(stage)
+                cells.append("-" if not s else f"{_f(s.get('time_s'))} / {_f(s.get('cpu_s'))} / "
+                                              f"{_f(s.get('peak_rss_mb'), 0)} / {_f(s.get('written_mb'))}")
+            lines.append(f"| {r['size']} | {name} | " + " | ".join(cells) + " |")
+    lines += ["", ("Growth exponent b of time ~ N^b (least squares on log-log over the sizes above); CPU time "
+                   "is the steadier figure on a shared machine."), "",
+              "| pipeline | time | " + " | ".join(STAGES[1:]) + " | total |", "|---|---|" + "---|" * len(STAGES)]
+    for key, label in (("exponents", "wall"), ("cpu_exponents", "CPU")):
+        for name, fitted in report.get(key, {}).items():
+            lines.append(f"| {name} | {label} | " + " | ".join(_f(fitted.get(s), 2) for s in (*STAGES[1:], "total"))
+                         + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_scale(report: dict, path: Path) -> Path:
+    """Log-log wall time and CPU time per stage against N: ours solid, pycolmap dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), sharex=True)
+    colours = dict(zip(STAGES[1:], plt.rcParams["axes.prop_cycle"].by_key()["color"]))
+    for ax, key, label in ((axes[0], "time_s", "wall time (s)"), (axes[1], "cpu_s", "CPU time (s)")):
+        for name, style in (("ours", "-"), ("pycolmap", "--")):
+            rows = [r for r in report["results"] if name in r]
+            for stage, colour in colours.items():
+                points = [(r["size"], r[name]["stages"][stage].get(key, 0)) for r in rows
+                          if stage in r[name]["stages"] and r[name]["stages"][stage].get(key, 0) > 0]
+                if points:
+                    ax.plot(*zip(*points), style, marker="o", color=colour, label=f"{name} {stage}")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("photos N")
+        ax.set_ylabel(label)
+    axes[0].legend(fontsize=7, ncol=2)
+    fig.suptitle("Stage cost against collection size (solid: ours, dashed: pycolmap SIFT)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -1,0 +1,395 @@
+"""Extraction and matching on a Ray cluster, writing exactly the files one machine writes.
+
+``extract_features(..., executor="ray")`` and ``match_features(..., executor="ray")`` call
+:func:`extract_on_ray` / :func:`match_on_ray` once the output file is prepared and locked and
+the work still to do is known. Ray (the optional extra ``sekd-sfm[ray]``) is imported only then.
+
+Division of labour:
+
+* the **driver** (the ``sekd`` process) only plans and merges: it lists what is not done
+  yet, streams it through a Ray Data ``map_batches`` stage, and hands every result it
+  receives to the part store (``featurefile.PartStore``, on disk within seconds, as in a
+  local run). A driver killed mid-run loses only what was in flight or not yet flushed;
+  the same command resumes and redoes nothing that reached the disk;
+* each **worker** is a stateful actor (``_ExtractWorker`` / ``_MatchWorker``) that loads
+  the model, or opens the feature file, once and then processes batch after batch. It
+  reads images and features by absolute path, so every node must see the same files
+  (shared storage). A worker process killed mid-run (``kill -9``, a node leaving) is
+  restarted by Ray and its in-flight batches are retried (Ray Data's actor defaults:
+  ``max_restarts=-1``, ``max_task_retries=-1``).
+
+Identical results: workers run the same functions as the local loop (``extract._load`` /
+``extract._features_of``; the same pair batches through ``match.match_batch``), with the
+driver's resolved configuration (``precision="auto"`` is resolved once, on the driver), and
+each worker checks that its own feature configuration (model checksum included) equals the
+driver's before it computes anything. Arrays travel as uncompressed ``.npz`` bytes, so they
+arrive bit for bit. torch rounds differently with the number of threads (a few keypoints
+move in ~2% of photos), so the reference is a local run with ``num_threads`` equal to
+``threads_per_worker``.
+"""
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import os
+import socket
+import time
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from . import featurefile as ff
+from .errors import Interrupted, SekdError
+
+logger = logging.getLogger("sekd")
+
+EXECUTORS = ("local", "ray")
+RAY_INSTALL = 'pip install "sekd-sfm[ray]"'
+
+
+@dataclass
+class RayOptions:
+    """Where and how wide to run on Ray.
+
+    ``address``: ``auto`` = ``$RAY_ADDRESS``, else the cluster started with ``ray start`` on
+    this machine, else a new local one sized to the machine; or ``HOST:PORT`` / ``ray://...``.
+    ``threads_per_worker``: CPU threads (and Ray CPUs) per actor. ``gpus_per_worker``: GPUs
+    per actor (0 = CPU actors; 0.5 puts two actors on a GPU). ``workers``: actors (None = as
+    many as the cluster's CPUs or GPUs hold). ``images_per_task``: images per extraction
+    task, the unit of retry after a worker dies.
+    """
+
+    address: str = "auto"
+    threads_per_worker: int = 1
+    gpus_per_worker: float = 0.0
+    workers: int | None = None
+    images_per_task: int = 4
+
+
+def check_executor(executor: str, options: RayOptions | None = None) -> None:
+    """SekdError for an unknown executor; for ``ray``, when Ray is not installed or no cluster answers at the address.
+
+    Called before anything is written, so a wrong setting leaves no file behind.
+    """
+    if executor not in EXECUTORS:
+        raise SekdError(f"unknown executor {executor!r}; choose from {', '.join(EXECUTORS)}")
+    if executor == "ray":
+        _import_ray()
+        address = (options or RayOptions()).address
+        if address != "auto":
+            _check_reachable(address)
+
+
+def _import_ray():
+    # Ray's C++ core prints operator notes to the driver's stderr (IP detection, actor
+    # arguments in the object store) that read like failures between the progress lines; the
+    # cluster's log files keep them. RAY_BACKEND_LOG_LEVEL=warning shows them here again.
+    os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "fatal")
+    try:
+        import ray
+        import ray.data  # the ray[data] extra, not only ray core
+    except ImportError:
+        raise SekdError(f"--executor ray needs Ray (with Ray Data), which is not installed: {RAY_INSTALL}") from None
+    return ray
+
+
+def _connect(options: RayOptions):
+    """``(ray, owned)``: Ray connected to the cluster; ``owned`` when this call connected it (so it disconnects)."""
+    ray = _import_ray()
+    if ray.is_initialized():
+        return ray, False
+    address = None if options.address == "auto" else options.address
+    try:
+        # Worker output stays in the cluster's logs: errors come back as results, and the
+        # driver's terminal keeps one progress bar.
+        ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        raise SekdError(
+            f"cannot connect to the Ray cluster at {options.address!r} ({str(exc).splitlines()[0]}); start one with "
+            "`ray start --head` or pass --ray-address HOST:PORT of a running one"
+        ) from None
+    _quiet_ray_data()
+    return ray, True
+
+
+def _check_reachable(address: str, timeout: float = 5.0) -> None:
+    """SekdError at once when nothing listens at ``HOST:PORT`` (Ray itself would retry for minutes)."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise SekdError(f"--ray-address {address!r}: expected HOST:PORT (e.g. 10.0.0.5:6379), ray://HOST:PORT or auto")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except OSError as exc:
+        raise SekdError(f"no Ray cluster answers at {address} ({exc.strerror or exc}); start one there with "
+                        "`ray start --head --port PORT`, or check the address (`ray status` on the head node)") from None
+
+
+def _quiet_ray_data() -> None:
+    from ray.data import DataContext
+
+    ctx = DataContext.get_current()
+    ctx.enable_progress_bars = False  # the driver shows its own bar (images, rate, ETA)
+    ctx.print_on_execution_start = False
+    logging.getLogger("ray.data").setLevel(logging.ERROR)
+
+
+def _workers(ray, options: RayOptions) -> int:
+    """Actors to start: as many as the cluster's CPUs (or GPUs) hold at the requested size."""
+    resources = ray.cluster_resources()
+    cpus, gpus = resources.get("CPU", 0.0), resources.get("GPU", 0.0)
+    if options.threads_per_worker > cpus:
+        raise SekdError(f"--threads-per-worker {options.threads_per_worker} but the Ray cluster has {cpus:g} CPUs; "
+                        "lower it or add nodes")
+    if options.gpus_per_worker > gpus:
+        raise SekdError(f"--gpus-per-worker {options.gpus_per_worker:g} but the Ray cluster has {gpus:g} GPUs; "
+                        "use --gpus-per-worker 0 (CPU workers) or add GPU nodes")
+    fit = int(cpus // options.threads_per_worker)
+    if options.gpus_per_worker:
+        fit = min(fit, int(gpus // options.gpus_per_worker))
+    return max(1, min(options.workers or fit, fit))
+
+
+def _pack(arrays: dict[str, np.ndarray]) -> bytes:
+    """Arrays as uncompressed ``.npz`` bytes (exact round trip, no pickle)."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def _unpack(payload: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(payload), allow_pickle=False) as data:
+        return {name: data[name] for name in data.files}
+
+
+def _node() -> str:
+    return socket.gethostname()
+
+
+def _rows(keys: list[str], payloads: list[bytes], errors: list[str], fatal: bool = False) -> dict[str, np.ndarray]:
+    """One output batch: ``key``, ``payload`` (npz bytes, empty on error), ``error`` ("" = ok), ``fatal``."""
+    return {
+        "key": np.array(keys, dtype=object),
+        "payload": np.array(payloads + [b""] * (len(keys) - len(payloads)), dtype=object),
+        "error": np.array(errors, dtype=object),
+        "fatal": np.full(len(keys), fatal),
+    }
+
+
+class _ExtractWorker:
+    """A Ray actor: builds the extractor once, then extracts the images of each batch (``key`` column)."""
+
+    def __init__(self, image_dir: str, config, described: dict, threads: int):
+        from .extract import describe_config
+        from .features import build_extractor
+        from .runtime import set_num_threads
+
+        set_num_threads(threads)
+        self.image_dir, self.config = Path(image_dir), config
+        self.problem = ""
+        try:
+            self.extractor, info = build_extractor(config)
+            mine = describe_config(config, self.extractor, info)
+            if mine != described:
+                self.problem = (f"the Ray worker on {_node()} would compute other features ({ff.json_attr(mine)}) than "
+                                f"the driver ({ff.json_attr(described)}); install the same sekd-sfm and weights on every node")
+        except (SekdError, OSError) as exc:
+            self.problem = f"the Ray worker on {_node()} cannot build the extractor: {exc}"
+        # Images are decoded on a background thread while the network runs (as the local loop does).
+        self.pool = ThreadPoolExecutor(max_workers=1)
+
+    def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        from .extract import _features_of, _load
+        from .images import ImageReadError
+
+        keys = [str(k) for k in batch["key"]]
+        if self.problem:
+            return _rows(keys, [], [self.problem] * len(keys), fatal=True)
+        color = getattr(self.extractor, "color", False)
+        loads = [self.pool.submit(_load, self.image_dir / key, self.config.resize_max, color, self.config.max_pixels)
+                 for key in keys]
+        payloads, errors = [], []
+        for load in loads:
+            try:
+                payloads.append(_pack(_features_of(self.extractor, load.result())))
+                errors.append("")
+            except ImageReadError as exc:  # unreadable here: reported like any unreadable image
+                payloads.append(b"")
+                errors.append(f"{exc} (Ray node {_node()})")
+        return _rows(keys, payloads, errors)
+
+
+class _Collected:
+    """A stand-in part store that keeps what ``match._match_and_save`` saves, in order."""
+
+    def __init__(self):
+        self.items: list[tuple[str, dict[str, np.ndarray]]] = []
+
+    def save(self, key: str, arrays: dict[str, np.ndarray]) -> None:
+        self.items.append((key, arrays))
+
+
+class _MatchWorker:
+    """A Ray actor: opens the feature file once, then matches batches of pairs (``pairs`` column, JSON)."""
+
+    def __init__(self, features: str, binary: bool, described: dict, config, threads: int):
+        from .runtime import set_num_threads
+
+        set_num_threads(threads)
+        self.features, self.binary, self.described, self.config = features, binary, described, config
+        self.cache = None
+
+    def _open(self):
+        import h5py
+
+        from .match import DescriptorCache
+        from .runtime import resolve_device
+
+        self.cache = DescriptorCache(h5py.File(self.features, "r"), self.binary,
+                                     self.described.get("rootsift", False), resolve_device(self.config.device))
+
+    def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        from . import matchfile as mf
+        from .match import _match_and_save
+
+        groups = [json.loads(str(text)) for text in batch["pairs"]]
+        keys = [mf.pair_key(a, b) for group in groups for a, b in group]
+        try:
+            if self.cache is None:
+                self._open()
+        except OSError as exc:  # the node does not see the file: nothing can be matched here
+            problem = (f"{self.features}: cannot read the feature file on Ray node {_node()} ({exc}); "
+                       "every node must see it at the same path (shared storage)")
+            return _rows(keys, [], [problem] * len(keys), fatal=True)
+        collected = _Collected()
+        for group in groups:  # the same batches as the local loop: identical padding, identical numbers
+            _match_and_save(group, self.cache, self.binary, self.described, self.config, collected)
+        if [key for key, _ in collected.items] != keys:  # cannot happen unless match.py changes its keys
+            raise RuntimeError("match results out of order")
+        payloads = [_pack(arrays) for _, arrays in collected.items]
+        return _rows(keys, payloads, [""] * len(keys))
+
+
+def _stream(ray, items: list[dict], worker, args: tuple, per_task: int, options: RayOptions) -> Iterator[dict]:
+    """Results of ``worker`` over ``items`` as they finish (any order): one row per image or pair."""
+    tasks = math.ceil(len(items) / per_task)
+    workers = min(_workers(ray, options), tasks)  # an actor with nothing to do only costs its start-up
+    logger.info("Ray: %d workers x %d threads%s, %d tasks", workers, options.threads_per_worker,
+                f" x {options.gpus_per_worker:g} GPU" if options.gpus_per_worker else "",
+                tasks)
+    dataset = ray.data.from_items(items, override_num_blocks=tasks)
+    dataset = dataset.map_batches(
+        worker, fn_constructor_args=args, batch_size=per_task, batch_format="numpy",
+        compute=ray.data.ActorPoolStrategy(size=workers),
+        num_cpus=options.threads_per_worker, num_gpus=options.gpus_per_worker or None,
+    )
+    # Whole blocks as they finish (one task's rows), cheaper for the driver than row by row.
+    batches = dataset.iter_batches(batch_size=None, batch_format="numpy")
+    return ({name: column[i] for name, column in batch.items()} for batch in batches for i in range(len(batch["key"])))
+
+
+def _drain(rows: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
+           on_error: Callable[[str, str], None], write_group, progress: bool) -> None:
+    """Save each result row as a part as it arrives (the part store flushes to disk on its own schedule).
+
+    Logs the driver's load: the time it spent saving results versus the whole run, i.e. how
+    far it is from being the bottleneck (docs/cluster.md, "Measured scaling").
+    """
+    bar = tqdm(total=total, unit=unit, desc=desc, disable=not progress, dynamic_ncols=True)
+    start, first, busy, size = time.monotonic(), None, 0.0, 0
+    try:
+        for row in rows:
+            t0 = time.monotonic()
+            first = first or t0
+            key, error = str(row["key"]), str(row["error"])
+            if error and bool(row["fatal"]):
+                raise SekdError(error)
+            if error:
+                on_error(key, error)
+            else:
+                parts.save(key, _unpack(row["payload"]))
+                size += len(row["payload"])
+            bar.update(1)
+            busy += time.monotonic() - t0
+    except KeyboardInterrupt:
+        bar.close()
+        saved = ff.merge_parts(output, parts, write_group=write_group)
+        raise Interrupted(f"interrupted: {saved} more {'images' if unit == 'img' else unit + 's'} saved in {output}; "
+                          "run the same command again to resume") from None
+    except BaseException:
+        ff.keep_parts(parts)  # what arrived stays for the next run
+        raise
+    finally:
+        bar.close()
+    end = time.monotonic()
+    if first is not None:
+        logger.info("Ray: %d %ss in %.1f s (first after %.1f s: worker start-up; then %.2f %s/s); driver busy "
+                    "saving %.1f s (%.1f%%, %.1f MB)", total, unit, end - start, first - start,
+                    (total - 1) / max(end - first, 1e-9), unit, busy, 100 * busy / max(end - start, 1e-9), size / 1e6)
+
+
+def _driver_config(config, extractor):
+    """The configuration workers build: ``auto`` precision and relative paths resolved on the driver."""
+    weights = str(Path(config.weights).resolve()) if config.weights else None
+    if config.feature == "sekd":
+        return replace(config, weights=weights, sekd=replace(config.sekd, precision=extractor.model.precision))
+    return replace(config, weights=weights)
+
+
+def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, extractor, parts: ff.PartStore,
+                   output: Path, *, strict: bool = False, progress: bool = True,
+                   options: RayOptions | None = None) -> list[str]:
+    """Extract the images ``todo`` (keys below ``image_dir``) on Ray into ``parts``; returns the unreadable keys.
+
+    ``described`` is the driver's ``extract.describe_config``; every worker must build the same.
+    """
+    options = options or RayOptions()
+    failed: list[str] = []
+    if not todo:
+        return failed
+
+    def on_error(key: str, error: str) -> None:
+        if strict:
+            raise SekdError(f"{error} (--strict)")
+        failed.append(key)
+        tqdm.write(f"warning: {error}; skipped")
+
+    ray, owned = _connect(options)
+    try:
+        args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker)
+        rows = _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, options.images_per_task, options)
+        _drain(rows, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None, progress)
+    finally:
+        if owned:
+            ray.shutdown()
+    return failed
+
+
+def match_on_ray(features: Path, todo: list[tuple[str, str]], sizes: dict[str, int], binary: bool, described: dict,
+                 config, parts: ff.PartStore, output: Path, *, progress: bool = True,
+                 options: RayOptions | None = None) -> None:
+    """Match the pairs ``todo`` on Ray into ``parts``, in the same batches as the local loop (``match.batches``)."""
+    from . import matchfile as mf
+    from .match import batches
+
+    options = options or RayOptions()
+    if not todo:
+        return
+
+    def on_error(key: str, error: str) -> None:  # workers report only fatal errors for pairs
+        raise SekdError(error)
+
+    ray, owned = _connect(options)
+    try:
+        items = [{"pairs": json.dumps(group)} for group in batches(todo, sizes, config.max_elements)]
+        args = (str(Path(features).resolve()), binary, described, config, options.threads_per_worker)
+        rows = _stream(ray, items, _MatchWorker, args, 1, options)
+        _drain(rows, len(todo), "pair", "match (ray)", output, parts, on_error, mf.write_pair_group, progress)
+    finally:
+        if owned:
+            ray.shutdown()

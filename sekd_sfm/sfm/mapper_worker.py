@@ -1,0 +1,88 @@
+"""The mapper's child process: ``python -m sekd_sfm.sfm.mapper_worker`` (started by ``mapping.run_mapper``).
+
+Why a child process: pycolmap's mappers run in C++ with the GIL released; the incremental
+mapper looks for Ctrl-C only between its steps (a bundle adjustment runs to its end: up to
+3 s on ten photos, far longer on large scenes), the global and hierarchical mappers never
+(they run to the end). A child can be killed at once, and its death frees every thread and
+every byte the mapper held.
+
+Protocol: the parent writes one pickled request (a dict, see ``main``) to stdin and closes
+it. The child writes one line per progress event to stdout (``pair``: an initial pair was
+found; ``image``: an image was registered), writes each reconstruction found to
+``<output>/<k>`` (largest first, COLMAP binary) and exits 0; on an exception it prints the
+traceback to stderr and exits 1. Only pycolmap and the standard library are imported here,
+so the child starts in well under a second (no torch).
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import pickle
+import signal
+import sys
+from pathlib import Path
+
+_PR_SET_PDEATHSIG = 1  # prctl(2)
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Ask Linux to SIGKILL this process when the parent dies (even by kill -9); no-op elsewhere."""
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent_pid:  # the parent died before prctl took effect
+        os._exit(1)
+
+
+def _log_to(prefix: str | None, pycolmap) -> None:
+    """COLMAP's log (glog) into files named ``<prefix><date>-<time>.<pid>``, nothing on the console."""
+    log = pycolmap.logging
+    log.alsologtostderr, log.logtostderr, log.stderrthreshold, log.minloglevel = False, False, 3, 0
+    for level in (log.WARNING, log.ERROR):
+        log.set_log_destination(level, "")
+    log.set_log_destination(log.INFO, prefix or "")
+
+
+def _event(text: str) -> None:
+    os.write(1, (text + "\n").encode())  # unbuffered: the parent's progress bar moves at once
+
+
+def run(request: dict) -> list:
+    """Run the requested mapper; the reconstructions found, largest first."""
+    import pycolmap
+
+    _log_to(request.get("log_prefix"), pycolmap)
+    options, kind = request["options"], request["mapper_type"]
+    pycolmap.set_random_seed(max(0, int(request.get("seed", 0))))
+    args = (str(request["database"]), str(request["image_dir"]), str(request["scratch"]), options)
+    if kind == "incremental":
+        found = pycolmap.incremental_mapping(*args, initial_image_pair_callback=lambda: _event("pair"),
+                                             next_image_callback=lambda: _event("image"))
+    elif kind == "global":
+        found = pycolmap.global_mapping(*args)
+    elif kind == "hierarchical":
+        found = pycolmap.hierarchical_mapping(*args)
+    else:
+        raise ValueError(f"unknown mapper type {kind!r}")
+    if request.get("log_prefix"):
+        pycolmap.logging.set_log_destination(pycolmap.logging.INFO, "")  # flush and close the log
+    return sorted(found.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
+
+
+def main() -> int:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides: on Ctrl-C it kills this process
+    request = pickle.load(sys.stdin.buffer)
+    _die_with_parent(int(request["parent_pid"]))
+    models = run(request)
+    result = Path(request["result"])
+    for k, reconstruction in enumerate(models):
+        (result / str(k)).mkdir(parents=True, exist_ok=True)
+        reconstruction.write_binary(str(result / str(k)))
+    _event(f"done {len(models)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,254 @@
+"""`sekd bench scale`: the generated scene (exact projection, co-visibility), measurement, metrics, end to end."""
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from sekd_sfm.cli.main import sekd
+
+from sekd_sfm.bench.scale.measure import run_measured
+from sekd_sfm.bench.scale.run import growth_exponent, pair_errors, pairs_recall
+from sekd_sfm.bench.scale.scene import (
+    Camera,
+    Face,
+    SceneConfig,
+    Textures,
+    covisibility_counts,
+    generate_scene,
+    layout_scene,
+    read_covisibility,
+    read_scene,
+    render,
+)
+from sekd_sfm.bench.strecha import read_cameras
+from sekd_sfm.errors import SekdError
+
+# A camera at the origin looking down +z: x ~ K X, f = 100 px, 160 x 120 px, principal point at the centre.
+K = np.array([[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]])
+CAMERA = Camera(K, np.eye(3), np.zeros(3), 160, 120)
+
+
+def _two_colour_texture(tmp_path: Path) -> Textures:
+    texture = np.zeros((20, 40, 3), np.uint8)
+    texture[:, :20] = (0, 0, 255)   # left half red (BGR)
+    texture[:, 20:] = (255, 0, 0)   # right half blue
+    cv2.imwrite(str(tmp_path / "t.png"), texture)
+    return Textures([tmp_path / "t.png"])
+
+
+def _wall(x0, y0, z, width, height, crop=(0, 0, 40, 20)) -> Face:
+    # Facing the camera: u = +x (right), v = +y (down), normal v x u = -z.
+    return Face(np.array([x0, y0, z]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), width, height, 0, crop,
+                (1.0, 1.0, 1.0))
+
+
+def test_render_puts_a_facade_corner_where_the_pinhole_projects_it(tmp_path):
+    # Wall 2 m x 1 m at 5 m, top-left corner (-1, -0.5, 5): by hand x = 79.5 + 100 * -1/5 = 59.5,
+    # y = 59.5 + 100 * -0.5/5 = 49.5; bottom-right (1, 0.5, 5) -> (99.5, 69.5). One texel per pixel.
+    face = _wall(-1.0, -0.5, 5.0, 2.0, 1.0)
+    assert np.allclose(face.normal, [0, 0, -1])
+    image, face_id = render(CAMERA, [face], _two_colour_texture(tmp_path))
+    drawn = np.argwhere(face_id == 0)
+    assert drawn[:, 1].min() == 60 and drawn[:, 1].max() == 99    # columns 59.5..99.5 -> pixel centres 60..99
+    assert drawn[:, 0].min() == 50 and drawn[:, 0].max() == 69
+    assert len(drawn) == 40 * 20
+    assert tuple(image[60, 70]) == (0, 0, 255) and tuple(image[60, 90]) == (255, 0, 0)  # texture left/right halves
+    pix, depth = CAMERA.project(face.corners())
+    assert np.allclose(pix, [[59.5, 49.5], [99.5, 49.5], [99.5, 69.5], [59.5, 69.5]]) and np.allclose(depth, 5)
+
+
+def test_render_depth_test_keeps_the_nearer_face_whatever_the_order(tmp_path):
+    near, far = _wall(-1.0, -0.5, 5.0, 2.0, 1.0), _wall(-3.0, -1.5, 8.0, 6.0, 3.0)
+    textures = _two_colour_texture(tmp_path)
+    _, ids_a = render(CAMERA, [near, far], textures)
+    _, ids_b = render(CAMERA, [far, near], textures)
+    assert ids_a[60, 80] == 0 and ids_b[60, 80] == 1   # the near wall, indexed 0 then 1
+    assert ids_a[45, 50] == 1 and ids_b[45, 50] == 0   # only the far wall there (cols 42..117, rows 41..78)
+    assert ids_a[0, 0] == -1                           # sky
+
+
+def test_render_clips_a_face_crossing_the_camera_plane(tmp_path):
+    # A floor 1.5 m below the camera from z = -10 to z = +10 m: only its front half may be drawn, below the horizon.
+    floor = Face(np.array([-5.0, 1.5, 10.0]), np.array([1.0, 0, 0]), np.array([0, 0, -1.0]), 10.0, 20.0, 0,
+                 (0, 0, 40, 20), (1.0, 1.0, 1.0))
+    assert np.allclose(floor.normal, [0, -1, 0])  # up, towards the camera (y is down)
+    _, ids = render(CAMERA, [floor], _two_colour_texture(tmp_path))
+    rows = np.flatnonzero((ids == 0).any(axis=1))
+    # Far edge at 10 m: y = 59.5 + 100 * 1.5 / 10 = 74.5; the near plane cuts the rest off below the image.
+    assert rows.min() == 75 and rows.max() == 119
+
+
+def test_covisibility_counts_are_symmetric_shared_points():
+    shared, seen = covisibility_counts([np.array([0, 1, 2]), np.array([1, 2, 3]), np.array([5])], 6)
+    dense = shared.toarray()
+    assert (dense == dense.T).all()
+    assert dense[0, 1] == 2 and dense[0, 2] == 0 and dense[1, 2] == 0 and dense[2, 2] == 1
+    assert seen.tolist() == [3, 3, 1]
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory, shared):
+    config = SceneConfig(num_images=12, image_size=160, seed=3)
+    out = tmp_path_factory.mktemp("scene")
+    generate_scene(out, config, progress=False)
+    return out, config
+
+
+def test_generated_scene_files_and_cameras_agree(tiny_scene):
+    out, _ = tiny_scene
+    scene = read_scene(out)
+    images = sorted(p.name for p in (out / "images").iterdir())
+    assert len(images) == 12 and len(scene["distractors"]) == 1 and len(scene["cameras"]) == 11
+    assert set(scene["cameras"]) | set(scene["distractors"]) == set(images)
+    assert cv2.imread(str(out / "images" / images[0])).shape == (120, 160, 3)
+    strecha = read_cameras(out / "gt_dense_cameras")
+    assert set(strecha) == set(scene["cameras"])
+    for name, camera in scene["cameras"].items():
+        R, t = strecha[name].cam_from_world
+        assert np.allclose(R, camera.R) and np.allclose(t, camera.t) and np.allclose(strecha[name].K, camera.K)
+        assert np.allclose(camera.R @ camera.R.T, np.eye(3)) and abs(np.linalg.det(camera.R) - 1) < 1e-9
+    # f from the 60 deg field of view: 80 / tan(30 deg).
+    assert math.isclose(scene["cameras"][images[0] if images[0] in scene["cameras"] else images[1]].K[0, 0],
+                        80 / math.tan(math.radians(30)))
+
+
+def test_generated_photo_shows_the_facade_corner_where_its_camera_projects_it(tiny_scene):
+    out, config = tiny_scene
+    layout = layout_scene(config)
+    scene = read_scene(out)
+    name = next(n for n in scene["cameras"])
+    camera = scene["cameras"][name]
+    assert np.allclose(camera.R, layout.cameras[0].R)
+    _, face_id = render(camera, layout.faces, layout.textures)
+    checked = 0
+    for index in np.unique(face_id[face_id >= 0]):
+        face = layout.faces[index]
+        pix, depth = camera.project(face.corners())
+        centre, _ = camera.project(face.corners().mean(0, keepdims=True))
+        for corner, z in zip(pix, depth):
+            inward = corner + 2.5 * (centre[0] - corner) / np.linalg.norm(centre[0] - corner)
+            col, row = np.round(inward).astype(int)
+            if z > 0 and 0 <= col < camera.width and 0 <= row < camera.height and face_id[row, col] == index:
+                checked += 1
+    assert checked >= 2  # at least two facade corners appear, unoccluded, exactly where projected
+    # The photo on disk is that rendering (after exposure change, noise and JPEG): same structure.
+    photo = cv2.imread(str(out / "images" / name), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+    rendered = cv2.cvtColor(render(camera, layout.faces, layout.textures)[0], cv2.COLOR_BGR2GRAY).astype(np.float32)
+    assert np.corrcoef(photo.ravel(), rendered.ravel())[0, 1] > 0.8
+
+
+def test_ground_truth_covisibility_is_non_empty_and_about_scene_photos(tiny_scene):
+    out, _ = tiny_scene
+    scene = read_scene(out)
+    pairs = read_covisibility(out, min_overlap=0.1)
+    assert pairs and all(len(p) == 2 and p <= set(scene["cameras"]) for p in pairs)
+    names = sorted(scene["cameras"])
+    assert frozenset(names[:2]) in pairs  # neighbours along the walk overlap
+    lines = (out / "covisibility.txt").read_text().splitlines()
+    assert all(a < b for a, b, *_ in (line.split() for line in lines))  # each unordered pair once
+    assert len(read_covisibility(out, min_overlap=0.0)) == len(lines) >= len(pairs)
+
+
+def test_scene_generation_is_deterministic_and_resumable(tiny_scene, tmp_path):
+    out, config = tiny_scene
+    again = tmp_path / "again"
+    generate_scene(again, config, progress=False)
+    for name in ("covisibility.txt", "images/00005.jpg"):
+        assert (out / name).read_bytes() == (again / name).read_bytes()
+    stamp = (again / "scene.json").stat().st_mtime_ns
+    generate_scene(again, config, progress=False)  # finished: reused
+    assert (again / "scene.json").stat().st_mtime_ns == stamp
+    with pytest.raises(SekdError, match="another configuration"):
+        generate_scene(again, SceneConfig(num_images=13, image_size=160, seed=3), progress=False)
+
+
+def test_scene_errors(tmp_path):
+    with pytest.raises(SekdError, match="at least 2 images"):
+        SceneConfig(num_images=1)
+    (tmp_path / "few").mkdir()
+    cv2.imwrite(str(tmp_path / "few" / "a.jpg"), np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(SekdError, match="1 photos"):
+        generate_scene(tmp_path / "s", SceneConfig(num_images=10, textures=str(tmp_path / "few")))
+    with pytest.raises(SekdError, match="not found"):
+        generate_scene(tmp_path / "s", SceneConfig(num_images=10, textures=str(tmp_path / "none")))
+    with pytest.raises(SekdError, match="not a generated scene"):
+        read_scene(tmp_path)
+
+
+def test_pair_errors_ignore_the_world_frame_and_fail_unregistered_pairs():
+    rng = np.random.default_rng(0)
+    truth = {}
+    for k in range(4):
+        R, _ = cv2.Rodrigues(rng.normal(0, 0.3, 3))
+        truth[f"{k}.jpg"] = Camera(K, R, rng.normal(0, 2, 3), 160, 120)
+    # The same cameras in another world frame and scale: X' = s Q X + c, so R' = R Q^T, t' = s t - R' c.
+    Q, _ = cv2.Rodrigues(np.array([0.2, -0.5, 1.0]))
+    s, c = 3.0, np.array([1.0, 2.0, 3.0])
+    estimated = {n: (cam.R @ Q.T, s * cam.t - cam.R @ Q.T @ c) for n, cam in truth.items() if n != "3.jpg"}
+    names = sorted(truth)
+    pairs = np.array([(0, 1), (0, 2), (1, 2), (0, 3)])
+    errors = pair_errors(estimated, truth, names, pairs)
+    assert np.allclose(errors[:3], 0, atol=1e-4) and np.isinf(errors[3])
+    # A 10 deg error in one camera's rotation shows as (at least) 10 deg in its pairs.
+    turn, _ = cv2.Rodrigues(np.array([0.0, math.radians(10), 0.0]))
+    estimated["1.jpg"] = (turn @ estimated["1.jpg"][0], turn @ estimated["1.jpg"][1])
+    errors = pair_errors(estimated, truth, names, pairs)
+    assert errors[0] == pytest.approx(10, abs=1e-6) and errors[1] == pytest.approx(0, abs=1e-4)
+
+
+def test_pairs_recall_and_growth_exponent():
+    covisible = {frozenset(("a", "b")): 0.5, frozenset(("b", "c")): 0.3}
+    result = pairs_recall([("b", "a"), ("a", "c"), ("c", "d")], covisible)
+    assert result == {"pairs": 3, "covisible_pairs": 2, "recall": 0.5, "precision": 1 / 3}
+    assert pairs_recall([], {}) == {"pairs": 0, "covisible_pairs": 0, "recall": None, "precision": None}
+    assert growth_exponent([10, 20, 40], [1.0, 4.0, 16.0]) == pytest.approx(2.0)
+    assert growth_exponent([10, 20, 40], [3.0, 6.0, 12.0]) == pytest.approx(1.0)
+    assert growth_exponent([10], [1.0]) is None and growth_exponent([10, 20], [0, 5]) is None
+
+
+def test_run_measured_reports_bytes_memory_and_errors(tmp_path):
+    data = b"x" * (24 * 1024 * 1024)
+    m = run_measured(Path.write_bytes, (tmp_path / "out.bin", data), tmp_path / "m.json")
+    assert m.error is None and m.result == len(data)
+    assert m.bytes_written >= len(data) and m.peak_rss >= len(data)
+    assert 0 <= m.cpu_s < 60 and m.wall_s > 0
+    failed = run_measured(Path.read_text, (tmp_path / "missing.txt",), tmp_path / "m2.json")
+    assert failed.result is None and "FileNotFoundError" in failed.error
+
+
+def test_cli_rejects_bad_sizes(tmp_path):
+    result = CliRunner().invoke(sekd, ["bench", "scale", "--sizes", "ten", "-o", str(tmp_path)])
+    assert result.exit_code == 2 and "comma" in result.output
+    result = CliRunner().invoke(sekd, ["bench", "scale", "--sizes", "4", "-o", str(tmp_path)])
+    assert result.exit_code == 2 and "at least 8" in result.output
+
+
+def test_cli_generate_only(tmp_path, shared):
+    result = CliRunner().invoke(sekd, ["bench", "scale", "--sizes", "10", "--image-size", "96", "--generate-only",
+                                       "-o", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert "n=10:" in result.output and "images/s" in result.output
+    assert len(list((tmp_path / "n10/scene/images").iterdir())) == 10
+
+
+@pytest.mark.slow
+def test_bench_scale_end_to_end_and_resume(tmp_path, shared):
+    args = ["bench", "scale", "--sizes", "12", "--image-size", "160", "-o", str(tmp_path), "--num-threads", "2"]
+    result = CliRunner().invoke(sekd, args)
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "results.json").read_text())
+    (row,) = report["results"]
+    assert row["size"] == 12 and row["scene_images"] == 11
+    for name in ("ours", "pycolmap"):
+        p = row[name]
+        assert p["failure"] is None and p["registered"] >= 8 and p["registered_distractors"] == []
+        assert 0 < p["auc5"] <= 1 and p["peak_rss_mb"] > 10
+        assert {"extract", "match", "verify", "map"} <= set(p["stages"])
+    assert row["pairs"]["recall"] == 1.0  # 12 photos: every pair is matched
+    assert "| 12 | ours |" in result.output and (tmp_path / "scale.png").is_file()
+    stamp = (tmp_path / "n12/result.json").stat().st_mtime_ns
+    again = CliRunner().invoke(sekd, args)
+    assert again.exit_code == 0 and (tmp_path / "n12/result.json").stat().st_mtime_ns == stamp
