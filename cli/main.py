@@ -79,7 +79,12 @@ _register()
 
 
 def main() -> None:
-    sekd(prog_name="sekd")
+    try:
+        sekd(prog_name="sekd")
+    except KeyboardInterrupt:
+        # click turns an interrupt during a command into one message and exit code 1; one that
+        # arrives after that message (during exit) must not end the process by SIGINT instead.
+        sys.exit(1)
 
 
 if __name__ == "__main__":

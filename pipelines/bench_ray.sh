@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Ray versus local extraction throughput on one machine, and the driver's merge capacity.
+# Ray versus local extraction throughput on one machine, and the driver's capacity (key rows, final merge).
 #
 # Starts a two-raylet Ray cluster (1 CPU each) inside a network namespace (loopback only,
 # so nothing binds an outward address; needs root and iproute2), then extracts the same
@@ -98,64 +98,65 @@ print("images differing between local (2 threads) and local --num-threads 1:",
       len({k.split("/")[0] for k in one if one[k] != default.get(k)}))
 EOF
 
-# Driver capacity: (1) saving results as parts and the final merge into the HDF5 file, from
-# the arrays of local1.h5; (2) Ray Data delivering result rows of the same size to the driver
-# (identity workers, no model), i.e. the whole driver side of a run with free workers.
+# Driver capacity. Workers write their results as part chunks themselves (one chunk per task
+# of 4 images) and send the driver only keys, so the driver's costs are: (1) absorbing key rows
+# from Ray Data (identity workers returning key rows, no model: the whole driver side of a run
+# with free workers; CPU of the driver process per row, Ray's threads included), and (2) the
+# final merge of the chunks into the HDF5 file, measured on the arrays of local1.h5 written
+# as 4-image chunks (what the workers write; their writing time is given too: it is spread
+# over the workers).
 python - "$OUT/local1.h5" "$OUT/merge" <<'EOF' | tee -a "$REPORT"
 import shutil, sys, time
 from pathlib import Path
 import h5py
 from sekd_sfm import featurefile as ff
-from sekd_sfm.cluster import _pack, _unpack
 src, work = Path(sys.argv[1]), Path(sys.argv[2])
 shutil.rmtree(work, ignore_errors=True); work.mkdir()
-keys = ff.list_keys(src)
-items = [(k, ff.read_features(src, k)) for k in keys]
-payloads = [(k, _pack(a)) for k, a in items]
-mb = sum(len(p) for _, p in payloads) / 1e6
+items = [(k, ff.read_features(src, k)) for k in ff.list_keys(src)]
+mb = sum(a.nbytes for _, arrays in items for a in arrays.values()) / 1e6
 out = work / "merged.h5"
 ff.create_empty(out, dict(h5py.File(src, "r").attrs))
-parts = ff.PartStore(out)
+parts = ff.PartStore(out, max_items=4, max_seconds=1e9, writer="bench")
 t0 = time.perf_counter()
-for key, payload in payloads:
-    parts.save(key, _unpack(payload))
+for key, arrays in items:
+    parts.save(key, arrays)
 parts.flush()
 t1 = time.perf_counter()
 ff.merge_parts(out, parts)
 t2 = time.perf_counter()
 n = len(items)
-print(f"merge: {n} results, {mb:.1f} MB ({mb / n:.2f} MB each)")
-print(f"merge: save as parts {n / (t1 - t0):.0f} items/s ({mb / (t1 - t0):.0f} MB/s); "
-      f"final merge into HDF5 {n / (t2 - t1):.0f} items/s ({mb / (t2 - t1):.0f} MB/s); "
-      f"both {n / (t2 - t0):.0f} items/s")
+print(f"merge: {n} results, {mb:.1f} MB ({mb / n:.2f} MB each), {len(range(0, n, 4))} chunks of 4")
+print(f"merge: workers writing 4-image chunks {n / (t1 - t0):.0f} items/s ({mb / (t1 - t0):.0f} MB/s, one process); "
+      f"driver's final merge into HDF5 {n / (t2 - t1):.0f} items/s ({mb / (t2 - t1):.0f} MB/s)")
 EOF
 
-RAY_BACKEND_LOG_LEVEL=fatal ip netns exec "$NS" python - "127.0.0.1:$PORT" "$OUT/local1.h5" <<'EOF' | tee -a "$REPORT"
-import logging, sys, time
+RAY_BACKEND_LOG_LEVEL=fatal ip netns exec "$NS" python - "127.0.0.1:$PORT" <<'EOF' | tee -a "$REPORT"
+import logging, pickle, sys, time
 import numpy as np, ray
-from sekd_sfm import featurefile as ff
-from sekd_sfm.cluster import _pack
+from sekd_sfm.cluster import _rows
 ray.init(address=sys.argv[1], log_to_driver=False, logging_level=logging.WARNING)
 ray.data.DataContext.get_current().enable_progress_bars = False
 ray.data.DataContext.get_current().print_on_execution_start = False
 logging.getLogger("ray.data").setLevel(logging.ERROR)
-keys = ff.list_keys(sys.argv[2])
-payload = _pack(ff.read_features(sys.argv[2], keys[0]))
-n = 2000
-class Echo:  # a worker that returns result-sized rows at once: only the pipeline and the driver cost
+class Echo:  # a worker that answers at once with the rows a real worker sends: keys, no errors, its chunk name
     def __call__(self, batch):
-        k = len(batch["key"])
-        return {"key": batch["key"], "payload": np.array([payload] * k, dtype=object),
-                "error": np.array([""] * k, dtype=object), "fatal": np.zeros(k, bool)}
-ds = ray.data.from_items([{"key": f"img{i}"} for i in range(n)], override_num_blocks=n // 4)
-ds = ds.map_batches(Echo, batch_size=4, batch_format="numpy", compute=ray.data.ActorPoolStrategy(size=2), num_cpus=1)
-t0 = time.perf_counter(); first = None; count = 0
-for batch in ds.iter_batches(batch_size=None, batch_format="numpy"):  # as sekd_sfm.cluster reads them
-    if first is None:
-        first, skip = time.perf_counter(), len(batch["key"])
-    count += len(batch["key"])
-t1 = time.perf_counter()
-print(f"ray data to driver: {count} rows of {len(payload) / 1e6:.2f} MB, {(count - skip) / (t1 - first):.0f} rows/s "
-      f"({(count - skip) * len(payload) / 1e6 / (t1 - first):.0f} MB/s) after the first block")
+        keys = [str(k) for k in batch["key"]]
+        return _rows(keys, [""] * len(keys), f"{time.time_ns():020d}-12345-0123456789abcdef-000001.npz")
+n = 4000
+for per_task in (4, 32):  # the driver's cost is per task (one Ray Data block), so bigger tasks divide it
+    ds = ray.data.from_items([{"key": f"folder/image_{i:06d}.jpg"} for i in range(n)], override_num_blocks=n // per_task)
+    ds = ds.map_batches(Echo, batch_size=per_task, batch_format="numpy", compute=ray.data.ActorPoolStrategy(size=2), num_cpus=1)
+    first = None; count = 0; size = 0; chunks = set()
+    for batch in ds.iter_batches(batch_size=None, batch_format="numpy"):  # as sekd_sfm.cluster._drain reads them
+        if first is None:
+            first, cpu0, skip = time.perf_counter(), time.process_time(), len(batch["key"])
+        size += len(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))
+        chunks.update(batch["chunk"])
+        count += len(batch["key"])
+    t1, cpu = time.perf_counter(), time.process_time() - cpu0
+    rows = count - skip
+    print(f"ray data to driver: {count} key rows ({size / count:.0f} B each) in tasks of {per_task}: {rows / (t1 - first):.0f} "
+          f"rows/s after the first block (2 echo workers, same 2 cores); driver CPU {1000 * cpu / rows:.3f} ms per row, "
+          f"{1000 * cpu * per_task / rows:.2f} ms per task = {rows / cpu:.0f} rows per CPU-second of the driver")
 EOF
 echo "report: $REPORT"

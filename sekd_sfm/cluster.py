@@ -7,33 +7,37 @@ the work still to do is known. Ray (the optional extra ``sekd-sfm[ray]``) is imp
 Division of labour:
 
 * the **driver** (the ``sekd`` process) only plans and merges: it lists what is not done
-  yet, streams it through a Ray Data ``map_batches`` stage, and hands every result it
-  receives to the part store (``featurefile.PartStore``, on disk within seconds, as in a
-  local run). A driver killed mid-run loses only what was in flight or not yet flushed;
-  the same command resumes and redoes nothing that reached the disk;
+  yet, streams it through a Ray Data ``map_batches`` stage and receives, per task, only the
+  keys done (with the chunk file holding them) and the failures: a few hundred bytes, not
+  the arrays. At the end it checks that every chunk reported is visible to it and merges
+  them into the HDF5 file (``featurefile.merge_parts``, as a local run does);
 * each **worker** is a stateful actor (``_ExtractWorker`` / ``_MatchWorker``) that loads
   the model, or opens the feature file, once and then processes batch after batch. It
-  reads images and features by absolute path, so every node must see the same files
-  (shared storage). A worker process killed mid-run (``kill -9``, a node leaving) is
-  restarted by Ray and its in-flight batches are retried (Ray Data's actor defaults:
-  ``max_restarts=-1``, ``max_task_retries=-1``).
+  reads images and features by absolute path and writes each task's results as one chunk
+  of the output's part store (``<output>.parts/``, ``featurefile.PartStore``: temporary
+  name + rename, the chunk name carrying the Ray node id and the PID) *before* the task
+  returns, so every node must see the same files (shared storage). A key reported to the
+  driver is on disk. A worker process killed mid-run (``kill -9``, a node leaving) is
+  restarted by Ray and only its unfinished tasks are retried (Ray Data's actor defaults:
+  ``max_restarts=-1``, ``max_task_retries=-1``); a torn temporary never counts as a chunk.
+  A killed driver's rerun finds the chunks and redoes nothing finished.
 
 Identical results: workers run the same functions as the local loop (``extract._load`` /
 ``extract._features_of``; the same pair batches through ``match.match_batch``), with the
 driver's resolved configuration (``precision="auto"`` is resolved once, on the driver), and
 each worker checks that its own feature configuration (model checksum included) equals the
-driver's before it computes anything. Arrays travel as uncompressed ``.npz`` bytes, so they
-arrive bit for bit. torch rounds differently with the number of threads (a few keypoints
+driver's before it computes anything. Arrays are written by ``PartStore`` as on one machine
+(uncompressed ``.npz``), so they arrive bit for bit. torch rounds differently with the number of threads (a few keypoints
 move in ~2% of photos), so the reference is a local run with ``num_threads`` equal to
 ``threads_per_worker``.
 """
 from __future__ import annotations
 
-import io
 import json
 import logging
 import math
 import os
+import pickle
 import socket
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -155,36 +159,61 @@ def _workers(ray, options: RayOptions) -> int:
     return max(1, min(options.workers or fit, fit))
 
 
-def _pack(arrays: dict[str, np.ndarray]) -> bytes:
-    """Arrays as uncompressed ``.npz`` bytes (exact round trip, no pickle)."""
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    return buffer.getvalue()
-
-
-def _unpack(payload: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(payload), allow_pickle=False) as data:
-        return {name: data[name] for name in data.files}
-
-
 def _node() -> str:
     return socket.gethostname()
 
 
-def _rows(keys: list[str], payloads: list[bytes], errors: list[str], fatal: bool = False) -> dict[str, np.ndarray]:
-    """One output batch: ``key``, ``payload`` (npz bytes, empty on error), ``error`` ("" = ok), ``fatal``."""
+def _writer() -> str:
+    """This worker's tag in chunk names: the Ray node id (unique per node, even on one host), else the host name."""
+    try:
+        import ray
+    except ImportError:  # outside Ray (tests call workers directly): the host name will do
+        ray = None
+    if ray is not None and ray.is_initialized():
+        return ray.get_runtime_context().get_node_id()[:16]
+    return "".join(c if c.isalnum() else "_" for c in _node())
+
+
+def _rows(keys: list[str], errors: list[str], chunk: str = "", fatal: bool = False) -> dict[str, np.ndarray]:
+    """One output batch: ``key``, ``error`` ("" = ok), ``chunk`` (file name holding the ok keys), ``fatal``.
+
+    No arrays: these go to the part store on the shared storage, so each row costs the
+    driver about 100 bytes whatever the result's size.
+    """
     return {
         "key": np.array(keys, dtype=object),
-        "payload": np.array(payloads + [b""] * (len(keys) - len(payloads)), dtype=object),
         "error": np.array(errors, dtype=object),
+        "chunk": np.array([chunk if not error else "" for error in errors], dtype=object),
         "fatal": np.full(len(keys), fatal),
     }
+
+
+class _TaskParts:
+    """A worker's writer into the output's part store: one chunk per task, on disk before the task returns."""
+
+    def __init__(self, output: str):
+        self.output, self.writer = Path(output), _writer()
+
+    def write(self, items: list[tuple[str, dict[str, np.ndarray]]]) -> tuple[str, str]:
+        """``(chunk name, "")`` once ``items`` are on disk (``""`` if none), or ``("", problem)`` if it cannot be written."""
+        # A new store per task, flushed only here: a failed write leaves nothing buffered behind.
+        parts = ff.PartStore(self.output, max_items=len(items) + 1, max_bytes=1 << 62, max_seconds=math.inf,
+                             writer=self.writer)
+        try:
+            for key, arrays in items:
+                parts.save(key, arrays)
+            chunk = parts.flush()
+        except OSError as exc:
+            return "", (f"{parts.root}: the Ray worker on {_node()} cannot write its results there "
+                        f"({exc.strerror or exc}); the output's folder must be writable shared storage at the same "
+                        "path on every node")
+        return (chunk.name if chunk else ""), ""
 
 
 class _ExtractWorker:
     """A Ray actor: builds the extractor once, then extracts the images of each batch (``key`` column)."""
 
-    def __init__(self, image_dir: str, config, described: dict, threads: int):
+    def __init__(self, image_dir: str, config, described: dict, threads: int, output: str):
         from .extract import describe_config
         from .features import build_extractor
         from .runtime import set_num_threads
@@ -202,6 +231,7 @@ class _ExtractWorker:
             self.problem = f"the Ray worker on {_node()} cannot build the extractor: {exc}"
         # Images are decoded on a background thread while the network runs (as the local loop does).
         self.pool = ThreadPoolExecutor(max_workers=1)
+        self.out = _TaskParts(output)
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         from .extract import _features_of, _load
@@ -209,19 +239,21 @@ class _ExtractWorker:
 
         keys = [str(k) for k in batch["key"]]
         if self.problem:
-            return _rows(keys, [], [self.problem] * len(keys), fatal=True)
+            return _rows(keys, [self.problem] * len(keys), fatal=True)
         color = getattr(self.extractor, "color", False)
         loads = [self.pool.submit(_load, self.image_dir / key, self.config.resize_max, color, self.config.max_pixels)
                  for key in keys]
-        payloads, errors = [], []
-        for load in loads:
+        done, errors = [], []
+        for key, load in zip(keys, loads):
             try:
-                payloads.append(_pack(_features_of(self.extractor, load.result())))
+                done.append((key, _features_of(self.extractor, load.result())))
                 errors.append("")
             except ImageReadError as exc:  # unreadable here: reported like any unreadable image
-                payloads.append(b"")
                 errors.append(f"{exc} (Ray node {_node()})")
-        return _rows(keys, payloads, errors)
+        chunk, problem = self.out.write(done)
+        if problem:
+            return _rows(keys, [problem] * len(keys), fatal=True)
+        return _rows(keys, errors, chunk)
 
 
 class _Collected:
@@ -237,12 +269,13 @@ class _Collected:
 class _MatchWorker:
     """A Ray actor: opens the feature file once, then matches batches of pairs (``pairs`` column, JSON)."""
 
-    def __init__(self, features: str, binary: bool, described: dict, config, threads: int):
+    def __init__(self, features: str, binary: bool, described: dict, config, threads: int, output: str):
         from .runtime import set_num_threads
 
         set_num_threads(threads)
         self.features, self.binary, self.described, self.config = features, binary, described, config
         self.cache = None
+        self.out = _TaskParts(output)
 
     def _open(self):
         import h5py
@@ -265,18 +298,20 @@ class _MatchWorker:
         except OSError as exc:  # the node does not see the file: nothing can be matched here
             problem = (f"{self.features}: cannot read the feature file on Ray node {_node()} ({exc}); "
                        "every node must see it at the same path (shared storage)")
-            return _rows(keys, [], [problem] * len(keys), fatal=True)
+            return _rows(keys, [problem] * len(keys), fatal=True)
         collected = _Collected()
         for group in groups:  # the same batches as the local loop: identical padding, identical numbers
             _match_and_save(group, self.cache, self.binary, self.described, self.config, collected)
         if [key for key, _ in collected.items] != keys:  # cannot happen unless match.py changes its keys
             raise RuntimeError("match results out of order")
-        payloads = [_pack(arrays) for _, arrays in collected.items]
-        return _rows(keys, payloads, [""] * len(keys))
+        chunk, problem = self.out.write(collected.items)
+        if problem:
+            return _rows(keys, [problem] * len(keys), fatal=True)
+        return _rows(keys, [""] * len(keys), chunk)
 
 
 def _stream(ray, items: list[dict], worker, args: tuple, per_task: int, options: RayOptions) -> Iterator[dict]:
-    """Results of ``worker`` over ``items`` as they finish (any order): one row per image or pair."""
+    """Result batches of ``worker`` over ``items`` as tasks finish (any order): columns of ``_rows``, one row per image or pair."""
     tasks = math.ceil(len(items) / per_task)
     workers = min(_workers(ray, options), tasks)  # an actor with nothing to do only costs its start-up
     logger.info("Ray: %d workers x %d threads%s, %d tasks", workers, options.threads_per_worker,
@@ -289,48 +324,70 @@ def _stream(ray, items: list[dict], worker, args: tuple, per_task: int, options:
         num_cpus=options.threads_per_worker, num_gpus=options.gpus_per_worker or None,
     )
     # Whole blocks as they finish (one task's rows), cheaper for the driver than row by row.
-    batches = dataset.iter_batches(batch_size=None, batch_format="numpy")
-    return ({name: column[i] for name, column in batch.items()} for batch in batches for i in range(len(batch["key"])))
+    return dataset.iter_batches(batch_size=None, batch_format="numpy")
 
 
-def _drain(rows: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
+def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
            on_error: Callable[[str, str], None], write_group, progress: bool) -> None:
-    """Save each result row as a part as it arrives (the part store flushes to disk on its own schedule).
+    """Count the keys the workers report as written, report failures, then check their chunks are visible here.
 
-    Logs the driver's load: the time it spent saving results versus the whole run, i.e. how
-    far it is from being the bottleneck (docs/cluster.md, "Measured scaling").
+    Logs the driver's load: the bytes it received per result, and the CPU time of the driver
+    process (its Ray threads included) per result, i.e. how many results per second it could
+    absorb (docs/cluster.md, "Measured scaling").
     """
     bar = tqdm(total=total, unit=unit, desc=desc, disable=not progress, dynamic_ncols=True)
-    start, first, busy, size = time.monotonic(), None, 0.0, 0
+    start, first, received, done = time.monotonic(), None, 0, 0
+    chunks: set[str] = set()
     try:
-        for row in rows:
-            t0 = time.monotonic()
-            first = first or t0
-            key, error = str(row["key"]), str(row["error"])
-            if error and bool(row["fatal"]):
-                raise SekdError(error)
-            if error:
-                on_error(key, error)
-            else:
-                parts.save(key, _unpack(row["payload"]))
-                size += len(row["payload"])
-            bar.update(1)
-            busy += time.monotonic() - t0
+        for batch in batches:
+            if first is None:
+                first, cpu0 = time.monotonic(), time.process_time()  # from here on the driver only absorbs results
+            received += len(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))
+            for key, error, chunk, fatal in zip(batch["key"], batch["error"], batch["chunk"], batch["fatal"]):
+                if error and fatal:
+                    raise SekdError(str(error))
+                if error:
+                    on_error(str(key), str(error))
+                else:
+                    chunks.add(str(chunk))
+            done += len(batch["key"])
+            bar.update(len(batch["key"]))
+        _check_visible(parts, chunks)
     except KeyboardInterrupt:
         bar.close()
         saved = ff.merge_parts(output, parts, write_group=write_group)
         raise Interrupted(f"interrupted: {saved} more {'images' if unit == 'img' else unit + 's'} saved in {output}; "
                           "run the same command again to resume") from None
-    except BaseException:
-        ff.keep_parts(parts)  # what arrived stays for the next run
-        raise
     finally:
         bar.close()
     end = time.monotonic()
     if first is not None:
-        logger.info("Ray: %d %ss in %.1f s (first after %.1f s: worker start-up; then %.2f %s/s); driver busy "
-                    "saving %.1f s (%.1f%%, %.1f MB)", total, unit, end - start, first - start,
-                    (total - 1) / max(end - first, 1e-9), unit, busy, 100 * busy / max(end - start, 1e-9), size / 1e6)
+        cpu = time.process_time() - cpu0
+        logger.info("Ray: %d %ss in %.1f s (first after %.1f s: worker start-up; then %.2f %s/s); driver received "
+                    "%.0f B per %s, %d chunks; driver CPU %.2f ms per %s (%.1f%% of a core)",
+                    done, unit, end - start, first - start, (done - 1) / max(end - first, 1e-9), unit,
+                    received / max(done, 1), unit, len(chunks), 1000 * cpu / max(done, 1), unit,
+                    100 * cpu / max(end - first, 1e-9))
+
+
+def _check_visible(parts: ff.PartStore, chunks: set[str], wait: float = 10.0) -> None:
+    """SekdError unless every chunk a worker reported is in the driver's view of ``<output>.parts/``.
+
+    A missing one means the output's folder is not the same shared storage on every node:
+    the results went to the workers' own disks. A few seconds' grace for the attribute
+    caches of network file systems.
+    """
+    deadline = time.monotonic() + wait
+    while True:
+        have = set(os.listdir(parts.root)) if parts.root.is_dir() else set()
+        missing = chunks - have
+        if not missing or time.monotonic() > deadline:
+            break
+        time.sleep(1.0)
+    if missing:
+        raise SekdError(f"{parts.root}: {len(missing)} of {len(chunks)} part files written by the Ray workers are not "
+                        f"visible on the driver (e.g. {min(missing)}); the output's folder must be shared storage "
+                        "mounted at the same path on every node")
 
 
 def _driver_config(config, extractor):
@@ -361,13 +418,15 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
 
     ray, owned = _connect(options)
     try:
-        args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker)
-        rows = _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, options.images_per_task, options)
-        _drain(rows, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None, progress)
+        args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker,
+                str(Path(output).resolve()))
+        batches = _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, options.images_per_task, options)
+        _drain(batches, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None, progress)
     finally:
         if owned:
             ray.shutdown()
-    return failed
+    order = {key: i for i, key in enumerate(todo)}
+    return sorted(failed, key=order.__getitem__)  # the order of a local run, whatever order tasks finished in
 
 
 def match_on_ray(features: Path, todo: list[tuple[str, str]], sizes: dict[str, int], binary: bool, described: dict,
@@ -387,9 +446,10 @@ def match_on_ray(features: Path, todo: list[tuple[str, str]], sizes: dict[str, i
     ray, owned = _connect(options)
     try:
         items = [{"pairs": json.dumps(group)} for group in batches(todo, sizes, config.max_elements)]
-        args = (str(Path(features).resolve()), binary, described, config, options.threads_per_worker)
-        rows = _stream(ray, items, _MatchWorker, args, 1, options)
-        _drain(rows, len(todo), "pair", "match (ray)", output, parts, on_error, mf.write_pair_group, progress)
+        args = (str(Path(features).resolve()), binary, described, config, options.threads_per_worker,
+                str(Path(output).resolve()))
+        batches = _stream(ray, items, _MatchWorker, args, 1, options)
+        _drain(batches, len(todo), "pair", "match (ray)", output, parts, on_error, mf.write_pair_group, progress)
     finally:
         if owned:
             ray.shutdown()

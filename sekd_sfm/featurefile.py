@@ -211,8 +211,10 @@ class PartStore:
     PID, sequence), and a key saved twice counts once: its last saved arrays win.
     """
 
-    def __init__(self, output: Path, *, max_items: int = 1, max_bytes: int = 64 << 20, max_seconds: float = 10.0):
+    def __init__(self, output: Path, *, max_items: int = 1, max_bytes: int = 64 << 20, max_seconds: float = 10.0,
+                 writer: str = ""):
         self.output = Path(output)
+        self.writer = writer  # goes into chunk names: writers on other machines (Ray workers) never collide
         self.root = self.output.with_name(self.output.name + ".parts")
         self.max_items, self.max_bytes, self.max_seconds = max_items, max_bytes, max_seconds
         self._buffer: list[tuple[str, dict[str, np.ndarray]]] = []
@@ -229,13 +231,13 @@ class PartStore:
                 or time.monotonic() - self._since >= self.max_seconds):
             self.flush()
 
-    def flush(self) -> None:
-        """Write the buffered items as one chunk file (nothing if the buffer is empty)."""
+    def flush(self) -> Path | None:
+        """Write the buffered items as one chunk file (nothing if the buffer is empty); returns its path."""
         if not self._buffer:
-            return
+            return None
         self.root.mkdir(parents=True, exist_ok=True)
         self._seq += 1
-        name = f"{time.time_ns():020d}-{os.getpid()}-{self._seq:06d}.npz"
+        name = f"{time.time_ns():020d}-{os.getpid()}{'-' + self.writer if self.writer else ''}-{self._seq:06d}.npz"
         target, tmp = self.root / name, self.root / f".{name}.{os.getpid()}.tmp"
         members = {"__keys__": np.array([key for key, _ in self._buffer], dtype=str)}
         for i, (_, arrays) in enumerate(self._buffer):
@@ -247,6 +249,7 @@ class PartStore:
         finally:
             tmp.unlink(missing_ok=True)
         self._buffer, self._bytes = [], 0
+        return target
 
     def chunks(self) -> list[Path]:
         """Complete chunk files, oldest first (temporaries of killed writers are deleted)."""

@@ -45,8 +45,15 @@ def tune_allocator() -> bool:
 
 
 def shared_dir() -> Path:
-    """The project's shared data folder: ``$SEKD_SHARED``, default ``../shared`` from the working directory."""
-    return Path(os.environ.get("SEKD_SHARED", "../shared"))
+    """The project's data folder (benchmark data, peer weights): the one place that says where it is.
+
+    ``$SEKD_SHARED`` when set; otherwise ``shared/`` beside the source checkout (so a command
+    finds it from any working directory), then ``../shared`` from the working directory.
+    """
+    if "SEKD_SHARED" in os.environ:
+        return Path(os.environ["SEKD_SHARED"])
+    beside_checkout = Path(__file__).resolve().parents[2] / "shared"
+    return beside_checkout if beside_checkout.is_dir() else Path("../shared")
 
 
 def set_num_threads(num_threads: int | None) -> int:
@@ -106,12 +113,31 @@ def resolve_precision(precision: str, device: torch.device) -> str:
 
 
 def stop_cleanly_on_sigterm() -> None:
-    """Make SIGTERM (``kill``, job schedulers) raise KeyboardInterrupt, so stages stop as on Ctrl-C:
-    each saves what is done and says how to resume."""
+    """Make SIGTERM (``kill``, job schedulers) and Ctrl-C raise KeyboardInterrupt once, so stages stop
+    cleanly: each saves what is done and says how to resume.
+
+    Further SIGTERM/SIGINT are ignored from the first one on: a second signal (a scheduler that
+    repeats its SIGTERM, Ctrl-C pressed twice) arriving while the interrupt is handled would
+    otherwise cut the saving short or kill the process during shutdown (exit by signal, not the
+    one ``Error:`` line and exit code 1). SIGKILL still ends a stuck process. Calling this again
+    (the next command in the same process) re-arms both signals.
+    """
     signal.signal(signal.SIGTERM, _raise_interrupt)
+    current = signal.getsignal(signal.SIGINT)
+    if current is signal.default_int_handler or current is _raise_interrupt or (
+            current == signal.SIG_IGN and _STATE["ignoring"]):  # not a handler the embedding program chose
+        signal.signal(signal.SIGINT, _raise_interrupt)
+    _STATE["ignoring"] = False
+
+
+_STATE = {"ignoring": False}  # True once an interrupt made us ignore SIGTERM/SIGINT
 
 
 def _raise_interrupt(signum, frame) -> None:
+    for other in (signal.SIGTERM, signal.SIGINT):
+        if signal.getsignal(other) is _raise_interrupt:
+            signal.signal(other, signal.SIG_IGN)
+    _STATE["ignoring"] = True
     raise KeyboardInterrupt
 
 
@@ -123,7 +149,7 @@ def keep_sigterm_handler(import_module):
     """
     previous = signal.getsignal(signal.SIGTERM)
     module = import_module()
-    if previous is _raise_interrupt:
+    if previous is _raise_interrupt or (previous == signal.SIG_IGN and _STATE["ignoring"]):
         try:
             signal.signal(signal.SIGTERM, previous)
         except ValueError:  # not the main thread: signals cannot be set here

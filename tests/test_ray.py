@@ -6,7 +6,9 @@ stopped by the namespace's PIDs, also on failure. Needs root (``ip netns``) and 
 """
 from __future__ import annotations
 
+import json
 import os
+import pickle
 import re
 import shutil
 import signal
@@ -137,6 +139,13 @@ def test_extract_on_ray_identical_to_local(cluster, local_run, tmp_path):
     assert _contents(out) == _contents(features)  # same keys, same arrays, byte for byte
     assert _attrs(out) == _attrs(features)
     assert '"broken.jpg"' in _attrs(out)["failed_images"]
+    _assert_keys_only(run.stderr, "img")
+
+
+def _assert_keys_only(log: str, unit: str) -> None:
+    """The driver's summary line: it received keys (~100 B per item), not the arrays (a result is > 50 kB here)."""
+    received = re.findall(rf"driver received (\d+) B per {unit}", log)
+    assert received and int(received[-1]) < 500, log[-2000:]
 
 
 def test_match_on_ray_identical_to_local(cluster, local_run, tmp_path):
@@ -148,6 +157,7 @@ def test_match_on_ray_identical_to_local(cluster, local_run, tmp_path):
     assert len(_contents(out)) == 2 * 10  # 10 pairs x (matches0, matching_scores0)
     assert _contents(out) == _contents(matches)
     assert _attrs(out) == _attrs(matches)
+    _assert_keys_only(run.stderr, "pair")
 
 
 def _map_workers(ns: str) -> list[int]:
@@ -163,34 +173,74 @@ def _map_workers(ns: str) -> list[int]:
     return pids
 
 
-def test_worker_killed_mid_run_is_redone(cluster, tmp_path):
-    """kill -9 of a busy worker: Ray restarts it, its in-flight images are redone, the file is complete and right."""
-    images = _photos(tmp_path / "images", 24)
-    args = ["extract", str(images), "--resize-max", "320", "--max-keypoints", "300"]
-    driver = subprocess.Popen(_ray_cli(cluster, *args, "-o", str(tmp_path / "ray.h5")),
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    seen, killed, buffer = 0, None, b""
+@pytest.fixture(scope="module")
+def photos_320(tmp_path_factory):
+    """24 photos and their local extraction at 320 px with one torch thread (the kill tests' reference)."""
+    root = tmp_path_factory.mktemp("photos320")
+    images = _photos(root / "images", 24)
+    local = extract_features(images, root / "local.h5", FeatureConfig(resize_max=320, max_keypoints=300),
+                             progress=False, num_threads=1)
+    return images, _contents(local)
+
+
+def _kill_when(driver: subprocess.Popen, total: int, victim) -> tuple[int | None, int]:
+    """Read the driver's progress bar; once 4 to 16 of ``total`` are done, SIGKILL the PID ``victim()`` names.
+
+    Returns ``(killed PID or None, last progress seen)``.
+    """
+    seen, buffer = 0, b""
     deadline = time.monotonic() + 150
-    while killed is None and time.monotonic() < deadline:
+    while time.monotonic() < deadline:
         chunk = os.read(driver.stderr.fileno(), 4096)
         if not chunk:
             break
         buffer = (buffer + chunk)[-4096:]
-        done = re.findall(rb"(\d+)/24 \[", buffer)
+        done = re.findall(rb"(\d+)/%d \[" % total, buffer)
         seen = int(done[-1]) if done else 0
-        workers = _map_workers(cluster[0])
-        if 4 <= seen <= 16 and workers:  # the first results are in, the rest in flight: kill a busy worker
-            killed = workers[0]
-            os.kill(killed, signal.SIGKILL)
+        pid = victim() if 4 <= seen <= 16 else None  # the first results are in, the rest in flight
+        if pid:
+            os.kill(pid, signal.SIGKILL)
+            return pid, seen
+    return None, seen
+
+
+def test_worker_killed_mid_run_is_redone(cluster, photos_320, tmp_path):
+    """kill -9 of a busy worker: Ray restarts it, its unfinished task is redone, the file is complete and identical."""
+    images, local = photos_320
+    args = ["extract", str(images), "--resize-max", "320", "--max-keypoints", "300"]
+    driver = subprocess.Popen(_ray_cli(cluster, *args, "-o", str(tmp_path / "ray.h5")),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    killed, seen = _kill_when(driver, 24, lambda: next(iter(_map_workers(cluster[0])), None))
     rest = driver.communicate(timeout=240)[1]
     assert killed is not None, f"no worker to kill while the run went on (last progress {seen}/24)"
     assert driver.returncode == 0, rest.decode(errors="replace")[-3000:]
     assert not Path(f"/proc/{killed}").exists()
-    local = extract_features(images, tmp_path / "local.h5", FeatureConfig(resize_max=320, max_keypoints=300),
-                             progress=False, num_threads=1)
     got = _contents(tmp_path / "ray.h5")
     assert len({name.split("/")[0] for name in got}) == 24
-    assert got == _contents(local)
+    assert got == local
+    assert not Path(f"{tmp_path / 'ray.h5'}.parts").exists()  # every chunk merged, no torn temporary left
+
+
+def test_driver_killed_mid_run_resumes_without_redoing(cluster, photos_320, tmp_path):
+    """kill -9 of the driver: the chunks the workers wrote stay, and the same command computes only the rest."""
+    from sekd_sfm import featurefile as ff
+
+    images, local = photos_320
+    out = tmp_path / "ray.h5"
+    command = _ray_cli(cluster, "extract", str(images), "--resize-max", "320", "--max-keypoints", "300", "-o", str(out))
+    driver = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert "sekd" in Path(f"/proc/{driver.pid}/cmdline").read_text()  # ip netns exec runs the driver in its own process
+    killed, seen = _kill_when(driver, 24, lambda: driver.pid)
+    driver.communicate(timeout=60)
+    assert killed is not None, f"the driver finished before it could be killed (last progress {seen}/24)"
+    kept = ff.PartStore(out).keys()  # chunks written by the workers (more may land while Ray stops them)
+    assert len(kept) >= seen >= 4
+    rerun = subprocess.run(command + ["--no-progress"], check=False, capture_output=True, text=True, timeout=240)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    done = int(re.findall(r"24 images, (\d+) already done", rerun.stderr)[-1])
+    assert done >= len(kept)  # nothing written before the kill is computed again
+    assert re.search(rf"Ray: {24 - done} imgs in ", rerun.stderr), rerun.stderr[-2000:]
+    assert _contents(out) == local
 
 
 def test_missing_ray_is_one_error_line(tmp_path, monkeypatch):
@@ -207,18 +257,72 @@ def test_missing_ray_is_one_error_line(tmp_path, monkeypatch):
     assert result.exit_code == 1 and 'pip install "sekd-sfm[ray]"' in result.output
 
 
-def test_results_travel_bit_for_bit():
-    from sekd_sfm.cluster import _pack, _unpack
+def test_workers_send_back_only_keys(local_run, tmp_path):
+    """A task's arrays go to a chunk of ``<output>.parts/`` (shared storage); the driver gets ~100 B per item."""
+    import torch
 
-    rng = np.random.default_rng(0)
-    arrays = {"keypoints": rng.normal(size=(7, 2)).astype(np.float32), "descriptors": rng.integers(0, 255, (7, 32), np.uint8),
-              "scores": np.array([np.nan, -0.0, 1e-42, np.inf, 0, 1, 2], np.float32), "image_size": np.array([640, 480], np.int32),
-              "uncertainty": np.float32(1.25), "empty": np.zeros((0, 128), np.float32)}
-    back = _unpack(_pack(arrays))
-    assert sorted(back) == sorted(arrays)
-    for name, value in arrays.items():
-        assert back[name].dtype == value.dtype and back[name].shape == value.shape
-        assert back[name].tobytes() == value.tobytes()
+    from sekd_sfm import featurefile as ff
+    from sekd_sfm.cluster import _driver_config, _ExtractWorker, _MatchWorker
+    from sekd_sfm.extract import describe_config
+    from sekd_sfm.features import build_extractor
+    from sekd_sfm.match import MatchConfig, batches, check_feature_file
+    from sekd_sfm.match import describe_config as describe_match
+    from sekd_sfm.pairs import read_pairs
+
+    images, features, pairs, matches = local_run
+    config, threads = FeatureConfig(resize_max=160, max_keypoints=300), torch.get_num_threads()
+    try:  # workers are plain classes: called here in-process, as a Ray actor would call them
+        extractor, info = build_extractor(config)
+        out = tmp_path / "features.h5"
+        worker = _ExtractWorker(str(images), _driver_config(config, extractor), describe_config(config, extractor, info),
+                                1, str(out))
+        keys = sorted(p.name for p in images.iterdir())  # 5 photos and broken.jpg
+        back = worker({"key": np.array(keys, dtype=object)})
+
+        fattrs, sizes = check_feature_file(features)
+        match_config = MatchConfig()
+        groups = list(batches(read_pairs(pairs), sizes, match_config.max_elements))
+        match_out = tmp_path / "matches.h5"
+        matcher = _MatchWorker(str(features), False, describe_match(match_config, str(fattrs["feature_type"]), False),
+                               match_config, 1, str(match_out))
+        match_back = matcher({"pairs": np.array([json.dumps(g) for g in groups], dtype=object)})
+    finally:
+        torch.set_num_threads(threads)
+
+    assert sorted(back) == ["chunk", "error", "fatal", "key"]  # no arrays come back
+    assert list(back["key"]) == keys and not back["fatal"].any()
+    assert [bool(e) for e in back["error"]] == [k == "broken.jpg" for k in keys]
+    chunks = sorted(ff.PartStore(out).root.glob("*.npz"))
+    assert [c.name for c in chunks] == sorted({c for c in back["chunk"] if c})  # one chunk per task, on disk
+    saved = ff.PartStore(out).load_all()
+    assert sorted(saved) == [k for k in keys if k != "broken.jpg"]
+    for key, arrays in saved.items():  # bit for bit what the local run wrote
+        local = ff.read_features(features, key)
+        for name in ("keypoints", "descriptors", "scores", "image_size"):
+            assert arrays[name].dtype == local[name].dtype and arrays[name].tobytes() == local[name].tobytes()
+    sent = len(pickle.dumps(back))
+    assert sent < 400 * len(keys)  # keys, errors, chunk names: the error line is the longest
+    assert sum(a.nbytes for arrays in saved.values() for a in arrays.values()) > 100 * sent
+
+    assert sorted(match_back) == ["chunk", "error", "fatal", "key"] and len(match_back["key"]) == 10
+    assert len(pickle.dumps(match_back)) < 200 * 10
+    with h5py.File(matches, "r") as f:
+        for key, arrays in ff.PartStore(match_out).load_all().items():
+            group = f["/".join(json.loads(key))]
+            for name, value in arrays.items():
+                assert value.tobytes() == group[name][()].tobytes()
+
+
+def test_unwritable_part_store_is_a_fatal_error(local_run, tmp_path):
+    """A node that cannot write the output's folder stops the run with one error naming the folder and the node."""
+    from sekd_sfm.cluster import _TaskParts
+
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    chunk, problem = _TaskParts(str(blocker / "features.h5")).write([("a.jpg", {"scores": np.zeros(3, np.float32)})])
+    assert chunk == "" and problem.startswith(f"{blocker}/features.h5.parts: the Ray worker on ")
+    assert "shared storage at the same path on every node" in problem
+    assert _TaskParts(str(tmp_path / "f.h5")).write([]) == ("", "")  # a task whose images all failed: no chunk
 
 
 class _FakeRay:

@@ -227,11 +227,18 @@ def run_ours(scene_dir: Path, work: Path, config, num_threads: int | None) -> di
                                                 "written_mb": round(window["bytes_written"] / MB, 2)}
         clock += seconds
     failure = m.error or (m.result or {}).get("failure")
+    features = {}
+    if (work / "features.h5").is_file():  # which network made the features: the default model may change
+        from ...featurefile import read_attrs
+
+        attrs = read_attrs(work / "features.h5")
+        features = {"feature": str(attrs.get("feature_type", "")), "model_sha256": str(attrs.get("model_sha256", "")),
+                    "weights": Path(str(attrs.get("weights", ""))).name}
     return {"stages": stages, "wall_s": round(m.wall_s - (start - m.start), 2),
             "cpu_s": round(sum(s["cpu_s"] for s in stages.values()), 2),
             "peak_rss_mb": round(m.peak_rss / MB, 1), "written_mb": round(m.bytes_written / MB, 2),
-            "disk_mb": round(folder_bytes(work) / MB, 2), "failure": failure, "matches": stats.get("matches"), "config": stats.get("config"),
-            "model": str(work / "model")}
+            "disk_mb": round(folder_bytes(work) / MB, 2), "failure": failure, "matches": stats.get("matches"),
+            "config": stats.get("config"), "features": features, "model": str(work / "model")}
 
 
 def run_pycolmap(scene_dir: Path, work: Path, pairs: list[tuple[str, str]], num_images: int, seed: int,
@@ -396,6 +403,10 @@ def scale_markdown(report: dict) -> str:
                          f"| {_f(p['wall_s'])} | {_f(p.get('cpu_s'))} | {_f(p['peak_rss_mb'], 0)} "
                          f"| {_f(p['written_mb'])} |"
                          + (f" failure: {p['failure']}" if p.get("failure") else ""))
+    models = [f"N = {r['size']}: {r['ours']['features'].get('weights') or '?'}" for r in report["results"]
+              if r.get("ours", {}).get("features")]
+    if models:
+        lines += ["", "SEKD weights of our pipeline: " + ", ".join(models) + "."]
     lines += ["", "Per stage: wall time (s) / CPU time (s) / peak RSS (MB) / bytes written (MB).", "",
               "| N | pipeline | " + " | ".join(STAGES) + " |", "|---|---|" + "---|" * len(STAGES)]
     for r in report["results"]:
