@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from sekd_sfm.bench.speed import benchmark_speed
-from sekd_sfm.runtime import shared_dir
+from sekd_sfm.runtime import PRECISIONS, shared_dir
 from sekd_sfm.weights import load_model
 
 from .options import weights_option
@@ -30,7 +30,7 @@ def bench() -> None:
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the results as JSON.")
 @weights_option
 def speed(images, count, repeats, height, width, max_keypoints, num_threads, output, weights) -> None:
-    """Images/s at 480x640 for plain fp32 SEKD, the fast path, and OpenCV SIFT, in one run.
+    """Images/s at 480x640 for plain fp32 SEKD, the fast path, int8 (with the int8 extra) and OpenCV SIFT, in one run.
 
     \b
     Example:
@@ -45,7 +45,11 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
         gflops = result["gflop_per_s"].get(name)
         click.echo(f"  {name:<18}{rate:7.2f} images/s" + (f"  {gflops:6.1f} GFLOP/s" if gflops else ""))
     click.echo(f"  fast/plain {result['fast_vs_plain']:.2f}x   fast/SIFT {result['fast_vs_sift']:.2f}x")
-    for key in ("agreement_fast_fp32", "agreement_fast_auto"):
+    if "int8_vs_fast_fp32" in result:
+        click.echo(f"  int8/fast fp32 {result['int8_vs_fast_fp32']:.2f}x   int8/SIFT {result['int8_vs_sift']:.2f}x")
+    for key in ("agreement_fast_fp32", "agreement_fast_auto", "agreement_int8"):
+        if key not in result:  # int8: only with the optional extra installed
+            continue
         a = result[key]
         click.echo(f"  {key}: {100 * a['same_pixel']:.1f}% same pixel, descriptor cosine median {a['cosine_median']:.5f} min {a['cosine_min']:.4f}")
     if output:
@@ -62,8 +66,9 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
               show_default=True, help="Folder for results.json, results.md, plots and the prediction cache.")
 @click.option("--resize-max", type=click.IntRange(min=0), default=640, show_default=True, help="Long side limit in px; 0 = full resolution.")
 @click.option("--max-keypoints", type=click.IntRange(min=1), default=500, show_default=True)
-@click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]), default="fp32", show_default=True,
-              help="SEKD network precision (fp32: the model's own numbers; auto: the fast path of `extract`).")
+@click.option("--precision", type=click.Choice(PRECISIONS), default="fp32", show_default=True,
+              help="SEKD network precision (fp32: the model's own numbers; auto: the fast path of `extract`; "
+                   "int8: quantized, needs the int8 extra).")
 @weights_option
 def homography(roots, methods, output, resize_max, max_keypoints, precision, weights) -> None:
     """Homography estimation (the paper's Table 2 / Fig. 4) on HPatches-layout sequences.

@@ -57,7 +57,9 @@ def runtime_options(f):
     f = click.option("--device", type=click.Choice(DEVICES), default="auto", show_default=True,
                      help="auto uses a CUDA GPU when one is present.")(f)
     f = click.option("--precision", type=click.Choice(PRECISIONS), default="auto", show_default=True,
-                     help="auto = bf16 on CPUs with native bf16 (AVX512-BF16/AMX, ~4x faster), else fp32.")(f)
+                     help="auto = bf16 on CPUs with native bf16 (AVX512-BF16/AMX, ~4x faster), else fp32. "
+                          "int8 = quantized network (CPU; needs pip install \"sekd-sfm[int8]\"; calibrated once "
+                          "per weights, cached in ~/.cache/sekd or $SEKD_CACHE).")(f)
     return f
 
 

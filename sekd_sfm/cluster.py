@@ -66,14 +66,31 @@ class RayOptions:
     ``threads_per_worker``: CPU threads (and Ray CPUs) per actor. ``gpus_per_worker``: GPUs
     per actor (0 = CPU actors; 0.5 puts two actors on a GPU). ``workers``: actors (None = as
     many as the cluster's CPUs or GPUs hold). ``images_per_task``: images per extraction
-    task, the unit of retry after a worker dies.
+    task, the unit of retry after a worker dies and of the driver's cost (a few ms of its
+    CPU per task); None = ``task_size(4, workers)``. Matching tasks are ``task_size(1,
+    workers)`` of the local run's pair batches.
     """
 
     address: str = "auto"
     threads_per_worker: int = 1
     gpus_per_worker: float = 0.0
     workers: int | None = None
-    images_per_task: int = 4
+    images_per_task: int | None = None
+
+
+#: Workers up to which tasks keep their base size; beyond, tasks grow with the cluster.
+TASK_GROWTH = 32
+
+
+def task_size(base: int, workers: int) -> int:
+    """Items per task: ``base`` up to ``TASK_GROWTH`` workers, then proportionally more.
+
+    The driver spends a roughly fixed CPU time per task (~6 ms, docs/cluster.md), so the tasks
+    it receives per second, not the items, must stay bounded: growing the task with the
+    cluster keeps them at what 32 workers send (~30/s for CPU extraction at 640 px), while a
+    worker's death still costs only one task.
+    """
+    return max(base, math.ceil(base * workers / TASK_GROWTH))
 
 
 def check_executor(executor: str, options: RayOptions | None = None) -> None:
@@ -310,13 +327,16 @@ class _MatchWorker:
         return _rows(keys, [""] * len(keys), chunk)
 
 
-def _stream(ray, items: list[dict], worker, args: tuple, per_task: int, options: RayOptions) -> Iterator[dict]:
-    """Result batches of ``worker`` over ``items`` as tasks finish (any order): columns of ``_rows``, one row per image or pair."""
+def _stream(ray, items: list[dict], worker, args: tuple, base: int, options: RayOptions) -> Iterator[dict]:
+    """Result batches of ``worker`` over ``items`` as tasks finish (any order): columns of ``_rows``, one row per image or pair.
+
+    ``base``: items per task on a small cluster (see ``task_size``); ``options.images_per_task`` overrides it.
+    """
+    per_task = options.images_per_task or task_size(base, _workers(ray, options))
     tasks = math.ceil(len(items) / per_task)
     workers = min(_workers(ray, options), tasks)  # an actor with nothing to do only costs its start-up
-    logger.info("Ray: %d workers x %d threads%s, %d tasks", workers, options.threads_per_worker,
-                f" x {options.gpus_per_worker:g} GPU" if options.gpus_per_worker else "",
-                tasks)
+    logger.info("Ray: %d workers x %d threads%s, %d tasks of %d", workers, options.threads_per_worker,
+                f" x {options.gpus_per_worker:g} GPU" if options.gpus_per_worker else "", tasks, per_task)
     dataset = ray.data.from_items(items, override_num_blocks=tasks)
     dataset = dataset.map_batches(
         worker, fn_constructor_args=args, batch_size=per_task, batch_format="numpy",
@@ -420,8 +440,8 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
     try:
         args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker,
                 str(Path(output).resolve()))
-        batches = _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, options.images_per_task, options)
-        _drain(batches, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None, progress)
+        results = _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
+        _drain(results, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None, progress)
     finally:
         if owned:
             ray.shutdown()
@@ -436,7 +456,7 @@ def match_on_ray(features: Path, todo: list[tuple[str, str]], sizes: dict[str, i
     from . import matchfile as mf
     from .match import batches
 
-    options = options or RayOptions()
+    options = replace(options or RayOptions(), images_per_task=None)  # a matching task is pair batches, not images
     if not todo:
         return
 
@@ -448,8 +468,8 @@ def match_on_ray(features: Path, todo: list[tuple[str, str]], sizes: dict[str, i
         items = [{"pairs": json.dumps(group)} for group in batches(todo, sizes, config.max_elements)]
         args = (str(Path(features).resolve()), binary, described, config, options.threads_per_worker,
                 str(Path(output).resolve()))
-        batches = _stream(ray, items, _MatchWorker, args, 1, options)
-        _drain(batches, len(todo), "pair", "match (ray)", output, parts, on_error, mf.write_pair_group, progress)
+        results = _stream(ray, items, _MatchWorker, args, 1, options)
+        _drain(results, len(todo), "pair", "match (ray)", output, parts, on_error, mf.write_pair_group, progress)
     finally:
         if owned:
             ray.shutdown()

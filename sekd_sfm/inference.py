@@ -153,7 +153,11 @@ class SEKDExtractor:
 
     def __init__(self, net: SEKDNet, config: SEKDConfig):
         self.config = config
-        self.model = FastSEKD(net, config.device, config.precision)
+        if config.precision == "int8":
+            from .int8 import Int8SEKD  # optional extra: imported only when asked for
+            self.model = Int8SEKD(net, config.device)
+        else:
+            self.model = FastSEKD(net, config.device, config.precision)
 
     def _level(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         scale = 255.0 if image.dtype == np.uint8 else 1.0

@@ -17,7 +17,7 @@ import torch
 
 from .errors import SekdError
 
-PRECISIONS = ("auto", "fp32", "bf16")
+PRECISIONS = ("auto", "fp32", "bf16", "int8")  # int8: optional extra, sekd_sfm/int8.py
 DEVICES = ("auto", "cpu", "cuda")
 
 # glibc mallopt parameters (malloc.h).

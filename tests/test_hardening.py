@@ -450,6 +450,24 @@ def test_second_run_on_a_locked_run_folder_is_refused(stopped_run):
     assert run("evolve", "--resume", "--out", stopped_run, "--no-progress").exit_code == 0  # a dead holder's lock is free
 
 
+def test_signals_during_the_interrupt_cleanup_are_ignored():
+    """After the first SIGTERM, a repeated SIGTERM or a Ctrl-C during cleanup must not kill the process
+    by signal (exit -15/-2 instead of the one Error line and code 1); the next command re-arms them."""
+    script = (
+        "import os, signal, sys, time\n"
+        "from sekd_sfm.runtime import stop_cleanly_on_sigterm\n"
+        "for attempt in range(2):  # the second one: as a second command in the same process\n"
+        "    stop_cleanly_on_sigterm()\n"
+        "    try:\n        os.kill(os.getpid(), signal.SIGTERM); time.sleep(10); sys.exit(3)\n"
+        "    except KeyboardInterrupt:\n"
+        "        os.kill(os.getpid(), signal.SIGTERM); os.kill(os.getpid(), signal.SIGINT); time.sleep(0.2)\n"
+        "        print('saved', attempt, file=sys.stderr)\n"
+        "sys.exit(1)\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"}, check=False)
+    assert done.returncode == 1 and done.stderr.split() == ["saved", "0", "saved", "1"], (done.returncode, done.stderr)
+
+
 def test_concurrent_evolve_on_one_folder_is_refused(train_images, tmp_path):
     """A real `sekd evolve` runs; a second one on its folder is refused naming it; the first stops cleanly."""
     import signal

@@ -115,11 +115,19 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
         "sekd fast auto": lambda: SEKDExtractor(net, config),
         "opencv sift": lambda: SiftExtractor(max_keypoints),
     }
+    from .. import int8
+    if int8.available():  # optional extra; its one-time calibration runs before timing (cached per weights)
+        factories["sekd int8"] = lambda: SEKDExtractor(net, SEKDConfig(**{**config.as_dict(), "precision": "int8"}))
     rates, outputs, methods = {}, {}, {}
     for name, factory in factories.items():
         methods[name] = factory()
         rates[name], outputs[name] = time_method(methods[name], images, repeats)
     fast = "sekd fast auto"
+    extra = {}
+    if "sekd int8" in rates:
+        extra = {"int8_vs_fast_fp32": rates["sekd int8"] / rates["sekd fast fp32"],
+                 "int8_vs_sift": rates["sekd int8"] / rates["opencv sift"],
+                 "agreement_int8": agreement(outputs["sekd plain fp32"], outputs["sekd int8"])}
     return {
         "images": count, "size": [height, width], "threads": threads, "gflop_per_image": gflop,
         "precision_auto": methods[fast].model.precision,
@@ -129,5 +137,6 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
         "fast_vs_sift": rates[fast] / rates["opencv sift"],
         "agreement_fast_fp32": agreement(outputs["sekd plain fp32"], outputs["sekd fast fp32"]),
         "agreement_fast_auto": agreement(outputs["sekd plain fp32"], outputs[fast]),
+        **extra,
         "versions": package_versions(),
     }
