@@ -27,9 +27,9 @@ Identical results: workers run the same functions as the local loop (``extract._
 driver's resolved configuration (``precision="auto"`` is resolved once, on the driver), and
 each worker checks that its own feature configuration (model checksum included) equals the
 driver's before it computes anything. Arrays are written by ``PartStore`` as on one machine
-(uncompressed ``.npz``), so they arrive bit for bit. torch rounds differently with the number of threads (a few keypoints
-move in ~2% of photos), so the reference is a local run with ``num_threads`` equal to
-``threads_per_worker``.
+(uncompressed ``.npz``), so they arrive bit for bit. torch rounds differently with the number
+of threads (a few keypoints move in ~2% of photos), so the reference is a local run with
+``num_threads`` equal to ``threads_per_worker``.
 """
 from __future__ import annotations
 

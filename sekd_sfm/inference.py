@@ -50,6 +50,8 @@ class FastSEKD(nn.Module):
         super().__init__()
         self.device = resolve_device(device)
         self.precision = resolve_precision(precision, self.device)
+        if self.precision not in _DTYPES:  # int8 is another runtime: SEKDExtractor builds sekd_sfm.int8.Int8SEKD
+            raise ValueError(f"FastSEKD runs {', '.join(_DTYPES)}; for int8 use SEKDExtractor or sekd_sfm.int8.Int8SEKD")
         net = use_fast_deconv(copy.deepcopy(net).eval())
         self.dtype = _DTYPES[self.precision]
         self.net = net.to(self.device, self.dtype).to(memory_format=torch.channels_last)

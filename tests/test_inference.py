@@ -1,4 +1,4 @@
-"""Keypoint selection, sub-pixel refinement and descriptor sampling (SPEC.md §2)."""
+"""Keypoint selection, sub-pixel refinement and descriptor sampling (docs/method.md)."""
 import cv2
 import numpy as np
 import pytest

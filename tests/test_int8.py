@@ -92,6 +92,7 @@ def test_cache_is_reused_and_invalidated_when_weights_change(tiny_calibration, c
     assert len(count_quantize) == built + 1 and changed != first and changed.is_file()
 
 
+@pytest.mark.slow  # a third calibration: ~10 s more under load
 @needs_int8
 def test_damaged_cache_entry_is_rebuilt(tiny_calibration, count_quantize):
     net, _ = load_model()

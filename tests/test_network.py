@@ -1,4 +1,4 @@
-"""The network is the authors' to float round-off (SPEC.md §1)."""
+"""The network is the authors' to float round-off (docs/method.md)."""
 import numpy as np
 import pytest
 import torch

@@ -41,7 +41,7 @@ def one_unique_location(h=32, w=32, at=(16, 16)):
 
 
 def reliability_direct(target, views, grids, cfg):
-    """SPEC §5.4-5.5 transcribed with grid_sample: the oracle for the fast implementation."""
+    """docs/method.md "Training" transcribed with grid_sample: the oracle for the fast implementation."""
     h, w = target.shape[1:]
     unit = torch.tensor([2.0 / w, 2.0 / h])
     reach = cfg.rel_radius * cfg.rel_stride

@@ -1,4 +1,4 @@
-"""Training losses on small tensors with hand-computed answers (SPEC_TRAINING §4, §6)."""
+"""Training losses on small tensors with hand-computed answers (docs/method.md "Training")."""
 import math
 
 import pytest

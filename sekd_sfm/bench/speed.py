@@ -1,4 +1,4 @@
-"""``sekd bench speed``: images/s at a fixed size for plain fp32, the fast path, and OpenCV SIFT.
+"""``sekd bench speed``: images/s at a fixed size for plain fp32, the fast path, int8 (optional extra) and OpenCV SIFT.
 
 All methods run in the same process on the same decoded images, so their ratios are
 meaningful on a noisy machine. The plain path runs first, before the fast path tunes

@@ -1,1 +1,1 @@
-"""Self-evolving training of SEKD (SPEC_TRAINING.md)."""
+"""Self-evolving training of SEKD (docs/method.md "Training")."""

@@ -1,6 +1,6 @@
 """Training configuration: one flat dataclass, named schedules (YAML in ``configs/``), overrides.
 
-Every hyper-parameter of SPEC_TRAINING.md is a field; where the paper and the authors'
+Every hyper-parameter of docs/method.md "Training" is a field; where the paper and the authors'
 code disagree, the field chooses (see ``docs/training.md``). Resolution order:
 schedule YAML -> user YAML file -> explicit overrides (``--rounds``, ``--set key=value``).
 """
@@ -50,7 +50,7 @@ class TrainConfig:
     keep_epoch_checkpoints: bool = True
     save_maps: bool = False          # also store the float16 score maps (Pbar, R) with the labels
     fast_deconv: bool = True         # grouped transposed convs as block-diagonal dense ones (same maths, faster on CPU)
-    # --- outer loop (SPEC_TRAINING §2) ------------------------------------------------
+    # --- outer loop (docs/method.md "Training") -------------------------------------
     rounds: int = 5
     subset_factor: int = 2           # round k uses images i with i mod S == k mod S
     round0_random: bool = False      # [paper] round 0 = random keypoints (a0) + (b); False = [code]: (c), (d) only

@@ -1,4 +1,4 @@
-"""Training data (SPEC_TRAINING §1): image subsets, colour jitter, random affine warps, training pairs.
+"""Training data (docs/method.md "Training"): image subsets, colour jitter, random affine warps, training pairs.
 
 Coordinates: an affine ``theta`` (2 x 3) acts on normalised coordinates (x = column,
 y = row, in [-1, 1], ``align_corners=False``). A warped view is ``I^(q) = I(theta q)``;
@@ -31,7 +31,7 @@ def rng_for(seed: int, round_index: int, kind: str, epoch: int, image_index: int
 
 
 def subset_indices(count: int, factor: int, round_index: int) -> list[int]:
-    """Indices i of the sorted image list with ``i mod S == k mod S`` (SPEC §1.2)."""
+    """Indices i of the sorted image list with ``i mod S == k mod S`` (docs/method.md "Training")."""
     return [i for i in range(count) if i % factor == round_index % factor]
 
 
@@ -157,7 +157,7 @@ def correspondences(theta: np.ndarray, height: int, width: int) -> torch.Tensor:
 
 
 def labels_forward(keypoints: np.ndarray, corr: torch.Tensor) -> torch.Tensor:
-    """Label map of the warped view: each target keypoint (x, y) moved to its corresponding pixel (SPEC §1.6)."""
+    """Label map of the warped view: each target keypoint (x, y) moved to its corresponding pixel (docs/method.md "Training")."""
     height, width = corr.shape[:2]
     out = torch.zeros(height, width)
     if len(keypoints):
@@ -210,7 +210,7 @@ def _crop_corr(corr: torch.Tensor, top: int, left: int, height: int, width: int)
 
 
 def make_pair(rgb_u8: np.ndarray, keypoints: np.ndarray, rng: np.random.Generator, cfg: TrainConfig) -> dict:
-    """One training pair (SPEC §1.6), cropped to ``crop_height x crop_width``.
+    """One training pair (docs/method.md "Training"), cropped to ``crop_height x crop_width``.
 
     Returns ``image0, image1`` (1 x h x w, [0, 1]), ``label0, label1`` (h x w, {0, 1}) and
     ``corr`` (h x w x 2 long): view-1 crop pixel (row, col) of each view-0 crop pixel, -1 if none.

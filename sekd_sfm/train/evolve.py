@@ -1,4 +1,4 @@
-"""The self-evolving outer loop (SPEC_TRAINING §2), the run folder, checkpoints and resume.
+"""The self-evolving outer loop (docs/method.md "Training"), the run folder, checkpoints and resume.
 
 A run is a list of tasks: labelling steps (a0 random, a detector, c reliability) and
 training steps (b descriptor, d detector), each tagged with its round. ``sekd evolve``

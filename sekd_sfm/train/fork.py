@@ -22,7 +22,7 @@ from .config import validate as validate_config
 from .evolve import RunFolder, Task, evolve_tasks
 from .report import rank_validation, write_atomic
 
-#: Settings only step (b) reads (SPEC_TRAINING §4 and the descriptor-step extensions).
+#: Settings only step (b) reads (docs/method.md "Training" and the descriptor-step extensions).
 DESC_STEP_FIELDS = ("epochs_desc", "desc_loss", "ratio_threshold", "margin", "margin_normalise",
                     "neg_min_distance", "neg_self_penalty", "neg_min_pixels", "spread_weight",
                     "alpha", "det_preserve_on")

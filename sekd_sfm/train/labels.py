@@ -1,6 +1,6 @@
 """Keypoint labels: random (a0), from the detector with affine adaptation (a), from descriptor reliability (c).
 
-SPEC_TRAINING §3 and §5. Labelling runs the network in eval mode without gradients on
+As in docs/method.md "Training". Labelling runs the network in eval mode without gradients on
 full (resized) images; processes label disjoint shares of the images and exchange them.
 """
 from __future__ import annotations
@@ -362,7 +362,7 @@ def label_images(net: nn.Module, images: TrainImages, indices: list[int], kind: 
 
 def keep_with_floor(labels: Labels, threshold: float, min_mean: float) -> None:
     """Keep keypoints scoring above ``threshold``, lowered if needed so the images keep ``min_mean``
-    keypoints on average (SPEC_TRAINING §9: lower t_rel when the mean falls below ~100).
+    keypoints on average (docs/method.md "Training": lower t_rel when the mean falls below ~100).
 
     The labels hold every NMS candidate (found with threshold 0, by decreasing score), so a lower
     threshold selects exactly what NMS with that threshold would have. ``min_mean`` 0: fixed threshold.

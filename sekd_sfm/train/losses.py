@@ -1,4 +1,4 @@
-"""Loss terms of the training steps (SPEC_TRAINING §4 and §6), each on plain tensors.
+"""Loss terms of the training steps (docs/method.md "Training"), each on plain tensors.
 
 Shapes: B = batch, h x w = crop; descriptors are unit vectors unless stated.
 """

@@ -1,4 +1,4 @@
-"""Training steps (b) descriptor update and (d) detector update (SPEC_TRAINING §4, §6).
+"""Training steps (b) descriptor update and (d) detector update (docs/method.md "Training").
 
 A step trains all parameters for a number of epochs with a fresh Adam optimiser and
 reduce-on-plateau scheduler, against a frozen copy of the network as it was when the step

@@ -3,7 +3,7 @@
 For each sequence, pairs (1, k): top-k SEKD keypoints, mutual nearest-neighbour matching,
 mean matching accuracy (MMA@t: fraction of matches within t px of the ground truth) and
 homography accuracy (HA@t: RANSAC homography, mean corner error <= t px), t = 1..10,
-as in SPEC.md §3 but on images resized to ``val_long_side``.
+as in docs/method.md but on images resized to ``val_long_side``.
 """
 from __future__ import annotations
 
