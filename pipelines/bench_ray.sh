@@ -40,7 +40,9 @@ stop() {  # every process of the namespace is ours (Ray's); stop them by PID, th
 }
 trap stop EXIT
 
+set +o pipefail  # head stops reading early, which ends ls with SIGPIPE: not a failure
 ls "$IMAGES" | grep -iE '\.(jpe?g|png)$' | head -n "$N" | while read -r f; do ln -sf "$IMAGES/$f" "$OUT/images/$f"; done
+set -o pipefail
 COUNT=$(ls "$OUT/images" | wc -l)
 
 mkdir -p "$CG/local" "$CG/ray"

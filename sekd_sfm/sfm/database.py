@@ -175,11 +175,12 @@ def create_database(image_dir: str | Path, features: str | Path, matches: str | 
 
 
 #: RANSAC trials per model (F and H; E too when the focal length is known) in verification.
-#: Pairs that verify stop early: RANSAC ends once its best model makes more trials pointless
-#: (for SEKD matches, a few hundred). Pairs RANSAC cannot verify, e.g. photos that share no
-#: surface but keep ~40 descriptor matches, run every trial, so COLMAP's 10000 made
-#: verification cost ~0.3 s of CPU per such pair, 94% of the stage on a 50-photo scene.
-#: 2000 trials made it 4.4x faster there with the same verified pairs and inliers (docs/reconstruction.md).
+#: Pairs that verify stop early (RANSAC ends once its best model makes more trials pointless;
+#: 22 ms of CPU per pair on a generated 50-photo scene). Pairs it cannot verify run every
+#: trial: photos that share no surface keep ~40 SEKD matches (SIFT's ratio test leaves them
+#: under the 15 below which COLMAP skips a pair), so COLMAP's 10000 trials cost 0.31 s per
+#: such pair, 94% of the stage. 2000 trials: 4.4x less CPU there, the same verified pairs;
+#: weak pairs (~20 inliers, <30% of the matches) can be lost (docs/reconstruction.md).
 VERIFY_MAX_TRIALS = 2000
 
 
