@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import importlib.metadata
 import json
+import logging
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -138,6 +139,9 @@ def quantize(net: SEKDNet, calibration: CalibrationConfig):
     """Convert ``net`` to OpenVINO (dynamic H, W) and quantize it to int8; returns an ``openvino.Model``."""
     ov = _import_openvino()
     import nncf
+    from nncf.common.logging import nncf_logger
+
+    nncf_logger.setLevel(logging.WARNING)  # its per-layer INFO lines would bury the progress bar
 
     net = net.eval().cpu().float()
     example = torch.zeros(1, 1, calibration.height, calibration.width)
