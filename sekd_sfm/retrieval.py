@@ -218,13 +218,7 @@ def _vocabulary_in_progress(parts: Path, identity: str) -> Vocabulary | None:
 
 
 def _save_vocabulary(parts: Path, identity: str, vocab: Vocabulary) -> None:
-    parts.mkdir(parents=True, exist_ok=True)
-    tmp = parts / f"vocabulary.tmp.{os.getpid()}"
-    with open(tmp, "wb") as f:
-        np.savez(f, identity=np.array(identity), **asdict(vocab))
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, parts / "vocabulary.npz")
+    _savez_durable(parts / "vocabulary.npz", identity=np.array(identity), **asdict(vocab))
 
 
 def _load_chunks(parts: Path, vocab_id: str) -> list[Path]:
@@ -246,11 +240,16 @@ def _load_chunks(parts: Path, vocab_id: str) -> list[Path]:
 
 
 def _save_chunk(parts: Path, vocab_id: str, names: list[str], rows: list[np.ndarray]) -> None:
-    parts.mkdir(parents=True, exist_ok=True)
-    target = parts / f"{time.time_ns()}-{os.getpid()}.npz"
+    _savez_durable(parts / f"{time.time_ns()}-{os.getpid()}.npz", vocab_id=np.array(vocab_id),
+                   names=np.array(names), descriptors=np.stack(rows).astype(np.float16))
+
+
+def _savez_durable(target: Path, **arrays: np.ndarray) -> None:
+    """``np.savez`` to a temporary name (not ``*.npz``, so never loaded as a chunk), fsync, rename onto ``target``."""
+    target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_suffix(f".tmp.{os.getpid()}")
     with open(tmp, "wb") as f:
-        np.savez(f, vocab_id=np.array(vocab_id), names=np.array(names), descriptors=np.stack(rows).astype(np.float16))
+        np.savez(f, **arrays)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, target)
