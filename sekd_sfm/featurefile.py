@@ -50,6 +50,7 @@ import h5py
 import numpy as np
 
 from .errors import Interrupted, SekdError
+from .fsio import fsync_replace, temp_name
 from .locking import exclusive_lock
 
 logger = logging.getLogger("sekd")
@@ -57,11 +58,6 @@ logger = logging.getLogger("sekd")
 FORMAT = "sekd-features"
 FORMAT_VERSION = 1
 ARRAYS = ("keypoints", "descriptors", "scores", "image_size", "scales", "orientations")
-
-
-def temp_name(path: Path) -> Path:
-    """A temporary name beside ``path``, unique to this process: ``<name>.<pid>.tmp``."""
-    return path.with_name(f"{path.name}.{os.getpid()}.tmp")
 
 
 def _pid_alive(pid: int) -> bool:
@@ -82,19 +78,6 @@ def remove_stale_temps(path: Path) -> None:
             shutil.rmtree(tmp, ignore_errors=True) if tmp.is_dir() else tmp.unlink(missing_ok=True)
 
 
-def _fsync_replace(tmp: Path, target: Path) -> None:
-    """Rename ``tmp`` over ``target`` with its data on disk first, and the rename itself made durable."""
-    with open(tmp, "rb+") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, target)
-    with contextlib.suppress(OSError):  # not every file system lets a folder be fsynced
-        fd = os.open(target.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
 def create_empty(path: Path, attrs: dict) -> None:
     """Write a feature (or match) file with attributes and no items, atomically (replaces ``path``)."""
     tmp = temp_name(path)
@@ -102,7 +85,7 @@ def create_empty(path: Path, attrs: dict) -> None:
         with h5py.File(tmp, "w") as f:
             for name, value in attrs.items():
                 f.attrs[name] = value
-        _fsync_replace(tmp, path)
+        fsync_replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -381,7 +364,7 @@ def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None, write_g
             f.attrs[MERGE_ID] = merge_id
         if chunks:
             _write_atomic(parts.root / MERGING, json.dumps({"merge_id": merge_id, "chunks": [c.name for c in chunks]}))
-        _fsync_replace(tmp, path)
+        fsync_replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
     parts.drop(chunks)

@@ -21,13 +21,13 @@ lines and lines starting with ``#`` are ignored.
 from __future__ import annotations
 
 import logging
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from . import featurefile as ff
 from .errors import SekdError
+from .fsio import write_atomic
 from .retrieval import RetrievalConfig, compute_global_descriptors, nearest_neighbors
 
 logger = logging.getLogger("sekd")
@@ -176,19 +176,10 @@ def write_pairs(pairs: list[Pair], path: str | Path) -> Path:
     """Write a pairs file atomically (temporary file, fsync, rename). Returns ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = format_pairs(pairs)
-    tmp = path.with_name(f"{path.name}.tmp.{os.getpid()}")
     try:
-        with open(tmp, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        return write_atomic(path, format_pairs(pairs))
     except OSError as exc:
         raise SekdError(f"{path}: cannot write pairs file ({exc}); free space or choose another output") from exc
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
 
 
 def retrieval_pairs(features: Path, names: list[str], config: PairsConfig, num_neighbors: int,

@@ -42,6 +42,7 @@ from tqdm import tqdm
 
 from . import featurefile as ff
 from .errors import SekdError
+from .fsio import atomic_output
 from .locking import exclusive_lock
 
 logger = logging.getLogger("sekd")
@@ -53,11 +54,12 @@ CHUNK_IMAGES = 256  # images per saved chunk: a kill loses at most this much wor
 class RetrievalConfig:
     """How global descriptors are made: VLAD with ``vocabulary_size`` centroids over ``pca_dim``-D local descriptors.
 
-    The global descriptor has ``vocabulary_size * pca_dim`` dimensions (4096 by default,
-    8 KiB per image as float16).
+    The global descriptor has ``vocabulary_size * pca_dim`` dimensions (32,768 by default,
+    64 KiB per image as float16). 512 words: recall@20 on a generated 250-photo street
+    0.950 against 0.873 with 64 words and 0.934 with 256 (docs/pairs.md).
     """
 
-    vocabulary_size: int = 64
+    vocabulary_size: int = 512
     pca_dim: int = 64
     max_samples: int = 100_000
     sample_images: int = 1000
@@ -177,18 +179,12 @@ def _identity(features: Path, config: RetrievalConfig) -> str:
 
 def _write_atomic(path: Path, write) -> None:
     """Call ``write(h5file)`` on a temporary file (unique per process), fsync it, rename it onto ``path``."""
-    tmp = path.with_name(f"{path.name}.tmp.{os.getpid()}")
     try:
-        with h5py.File(tmp, "w") as f:
+        with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
             write(f)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
     except OSError as exc:
         raise SekdError(f"{path}: cannot write global descriptors ({exc}); free space or choose another folder, "
                         "then rerun (described images are kept)") from exc
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def _read_existing(path: Path, identity: str) -> tuple[Vocabulary | None, list[str]]:
@@ -245,14 +241,9 @@ def _save_chunk(parts: Path, vocab_id: str, names: list[str], rows: list[np.ndar
 
 
 def _savez_durable(target: Path, **arrays: np.ndarray) -> None:
-    """``np.savez`` to a temporary name (not ``*.npz``, so never loaded as a chunk), fsync, rename onto ``target``."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_suffix(f".tmp.{os.getpid()}")
-    with open(tmp, "wb") as f:
+    """``np.savez`` onto ``target`` atomically (the temporary name does not end in ``.npz``: never loaded as a chunk)."""
+    with atomic_output(target) as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, target)
 
 
 def compute_global_descriptors(features: str | Path, config: RetrievalConfig | None = None, output: str | Path | None = None,
@@ -349,7 +340,7 @@ def _read_rows(data: h5py.Dataset, rows: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(data[rows].astype(np.float32))
 
 
-def nearest_neighbors(path: str | Path, names: list[str], k: int, block: int = 1024) -> dict[str, list[str]]:
+def nearest_neighbors(path: str | Path, names: list[str], k: int, block: int = 512) -> dict[str, list[str]]:
     """The ``k`` most similar images (cosine, best first) of each of ``names`` among ``names``, from the global file.
 
     Blocked over queries and database (``block`` rows each), so memory is ~block x block

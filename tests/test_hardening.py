@@ -495,6 +495,7 @@ def test_concurrent_evolve_on_one_folder_is_refused(train_images, tmp_path):
 
 
 def test_training_temp_files_are_unique_per_process(tmp_path, monkeypatch):
+    from sekd_sfm import fsio
     from sekd_sfm.train import report
 
     seen, real_replace = [], os.replace
@@ -503,9 +504,24 @@ def test_training_temp_files_are_unique_per_process(tmp_path, monkeypatch):
         seen.append(Path(src).name)
         real_replace(src, dst)
 
-    monkeypatch.setattr(report.os, "replace", spy)
+    monkeypatch.setattr(fsio.os, "replace", spy)
     report.write_atomic(tmp_path / "losses.csv", "a,b\n")
     assert seen == [f"losses.csv.{os.getpid()}.tmp"] and (tmp_path / "losses.csv").read_text() == "a,b\n"
+
+
+def test_atomic_output_leaves_the_old_file_when_the_writer_fails(tmp_path):
+    from sekd_sfm.fsio import atomic_output
+
+    target = tmp_path / "sub" / "pairs.txt"
+    target.parent.mkdir()
+    target.write_text("old\n")
+    with pytest.raises(RuntimeError), atomic_output(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("disk went away")
+    assert target.read_text() == "old\n" and sorted(p.name for p in target.parent.iterdir()) == ["pairs.txt"]
+    with atomic_output(tmp_path / "new" / "x.bin") as tmp:  # the parent folder is created
+        tmp.write_bytes(b"\x00\x01")
+    assert (tmp_path / "new" / "x.bin").read_bytes() == b"\x00\x01" and len(list((tmp_path / "new").iterdir())) == 1
 
 
 def test_debug_variable_and_pixel_cap_are_documented():

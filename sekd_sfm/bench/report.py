@@ -5,6 +5,7 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
+from ..fsio import write_atomic
 from .metrics import THRESHOLDS
 
 
@@ -152,9 +153,7 @@ def write_results(results: dict, output: Path, markdown: Callable[[dict], str], 
     """results.json (atomically), results.md and the plots of one benchmark run; returns the JSON path."""
     output.mkdir(parents=True, exist_ok=True)
     path = output / "results.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(results, indent=1, default=float))
-    tmp.replace(path)
+    write_atomic(path, json.dumps(results, indent=1, default=float))
     (output / "results.md").write_text(markdown(results))
     plot(results, output)
     return path

@@ -9,6 +9,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..fsio import write_atomic
+
 COLUMNS = ("avg_ha_all", "avg_ha_i", "avg_ha_v", "mma3", "pose_maa", "sfm_registered", "sfm_maa", "sfm_rot_deg",
            "sfm_time_s")
 HEADERS = ("Avg.HA@1:10", "i", "v", "MMA@3", "pose mAA", "SfM registered", "SfM mAA", "SfM rot. err (deg)",
@@ -120,8 +122,6 @@ def write_summary(output: Path, homography=None, pose=None, sfm=None, highlight:
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     path = output / "summary.md"
-    tmp = path.with_suffix(".md.tmp")
-    tmp.write_text(summary_markdown(rows, {k: ", ".join(f"`{p}`" for p in v) for k, v in sources.items()}))
-    tmp.replace(path)
+    write_atomic(path, summary_markdown(rows, {k: ", ".join(f"`{p}`" for p in v) for k, v in sources.items()}))
     plot_summary(rows, output, highlight)
     return path

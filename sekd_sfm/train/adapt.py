@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from ..errors import SekdError
+from ..fsio import atomic_output
 from ..images import list_images
 from ..weights import (
     DEFAULT_MODEL,
@@ -176,10 +177,8 @@ def _write_output(last: Path, output: Path, record: dict) -> Path:
     meta = dict(checkpoint.get("sekd_sfm", {}))
     meta["adapted"] = {k: record[k] for k in ("photos", "count", "rounds", "schedule", "seed", "start",
                                               "start_path", "start_sha256")}
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(output.name + ".tmp")
-    torch.save({"state_dict": checkpoint["state_dict"], "sekd_sfm": meta}, tmp)
-    tmp.replace(output)
+    with atomic_output(output) as tmp:
+        torch.save({"state_dict": checkpoint["state_dict"], "sekd_sfm": meta}, tmp)
     logger.info("adapted model: %s (run folder %s)", output, run_folder(output))
     return output
 

@@ -8,22 +8,12 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 from pathlib import Path
 
+from ..fsio import write_atomic  # also imported from here by the training modules
 from .config import load_run_config
 
 SECTIONS = {"epochs": ("round", "kind", "epoch"), "labels": ("task",), "validation": ("task",)}
-
-
-def write_atomic(path: Path, data: str | bytes) -> None:
-    """Write to a temporary file beside ``path`` and rename it over ``path``.
-
-    The temporary name holds the PID, so two processes never write the same temporary file.
-    """
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
-    os.replace(tmp, path)
 
 
 def csv_text(rows: list[dict]) -> str:
