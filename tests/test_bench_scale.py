@@ -15,13 +15,17 @@ from sekd_sfm.bench.scale.scene import (
     Camera,
     Face,
     SceneConfig,
+    SurfaceView,
     Textures,
+    assign_textures,
     covisibility_counts,
     generate_scene,
     layout_scene,
+    pixel_overlap,
     read_covisibility,
     read_scene,
     render,
+    render_layers,
 )
 from sekd_sfm.bench.strecha import read_cameras
 from sekd_sfm.errors import SekdError
@@ -89,6 +93,62 @@ def test_covisibility_counts_are_symmetric_shared_points():
     assert seen.tolist() == [3, 3, 1]
 
 
+def test_mirrored_face_is_the_left_right_flip_of_the_straight_one(tmp_path):
+    textures = _two_colour_texture(tmp_path)
+    straight, mirrored = _wall(-1.0, -0.5, 5.0, 2.0, 1.0), _wall(-1.0, -0.5, 5.0, 2.0, 1.0)
+    mirrored.mirror = True
+    a, ids = render(CAMERA, [straight], textures)
+    b, _ = render(CAMERA, [mirrored], textures)
+    assert tuple(a[60, 70]) == (0, 0, 255) and tuple(b[60, 70]) == (255, 0, 0)  # red left -> blue left
+    cols = np.flatnonzero(ids[60] == 0)  # 60..99: the flip maps column c to 159 - c around the centre 79.5
+    assert np.array_equal(a[50:70, cols], b[50:70, cols[::-1]])
+
+
+def _view(camera: Camera, faces: list[Face], tmp_path: Path) -> SurfaceView:
+    _, face_id, depth = render_layers(camera, faces, _two_colour_texture(tmp_path))
+    return SurfaceView.of(camera, face_id, depth)
+
+
+def test_pixel_overlap_of_a_sideways_step_is_the_shared_field_of_view(tmp_path):
+    # A wall filling the view at 10 m. The field of view there is 16 m wide (160 px, f = 100: 1.6 m per 10 px).
+    # Camera b steps 4 m right: it sees x in [-4, 12], a sees [-8, 8]: a's columns over x >= -4, i.e. 3/4.
+    wall = _wall(-30.0, -20.0, 10.0, 60.0, 40.0)
+    b = Camera(K, np.eye(3), np.array([-4.0, 0, 0]), 160, 120)
+    view_a, view_b = _view(CAMERA, [wall], tmp_path), _view(b, [wall], tmp_path)
+    assert len(view_a.points) == 20 * 15 and np.allclose(view_a.points[:, 2], 10)  # one point per 8 x 8 px cell
+    assert pixel_overlap(view_a, CAMERA, view_b, b) == pytest.approx(0.75)
+    assert pixel_overlap(view_b, b, view_a, CAMERA) == pytest.approx(0.75)
+    # Rays from 4 m apart meet at 10 m at 13-23 degrees: none within 10 degrees.
+    assert pixel_overlap(view_a, CAMERA, view_b, b, max_angle=10) == 0.0
+
+
+def test_pixel_overlap_counts_only_what_the_other_photo_sees_unoccluded(tmp_path):
+    # A near wall in front of b's view (but outside a's, which looks from far left) hides the right half.
+    wall = _wall(-30.0, -20.0, 10.0, 60.0, 40.0)
+    blocker = _wall(0.0, -20.0, 2.0, 10.0, 40.0)  # x >= 0 at 2 m: covers b's right half
+    b = CAMERA
+    a = Camera(K, np.eye(3), np.array([0.0, 0, 0]), 160, 120)
+    view_a = _view(a, [wall], tmp_path)  # a's rendering without the blocker: the wall everywhere
+    view_b = _view(b, [wall, blocker], tmp_path)
+    assert pixel_overlap(view_a, a, view_b, b) == pytest.approx(0.5)
+    assert pixel_overlap(view_b, b, view_b, b) == pytest.approx(1.0)
+
+
+def test_assign_textures_gives_every_face_its_own_region():
+    sizes = [(640, 480), (480, 640)]
+    faces = [_wall(0.0, 0.0, 5.0, 2.0 + i % 3, 1.0 + i % 2) for i in range(14)]  # 14 faces > 2 photos x 2 mirrors
+    assign_textures(faces, sizes, np.random.default_rng(0))
+    keys = [(f.texture, f.crop[0] * 2 // sizes[f.texture][0], f.crop[1] * 2 // sizes[f.texture][1], f.mirror)
+            for f in faces]
+    assert len(set(keys)) == len(faces)  # 2 x 2 tiles x 2 mirrors x 2 photos = 16 slots, each used once
+    for f in faces:
+        x, y, w, h = f.crop
+        tw, th = sizes[f.texture][0] // 2, sizes[f.texture][1] // 2
+        assert x // tw == (x + w - 1) // tw and y // th == (y + h - 1) // th  # inside one tile
+        assert abs(w / h - f.width / f.height) < 0.02 * f.width / f.height  # the face's own aspect
+    assert assign_textures([], sizes, np.random.default_rng(0)) == []
+
+
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory, shared):
     config = SceneConfig(num_images=12, image_size=160, seed=3)
@@ -150,6 +210,15 @@ def test_ground_truth_covisibility_is_non_empty_and_about_scene_photos(tiny_scen
     lines = (out / "covisibility.txt").read_text().splitlines()
     assert all(a < b for a, b, *_ in (line.split() for line in lines))  # each unordered pair once
     assert len(read_covisibility(out, min_overlap=0.0)) == len(lines) >= len(pairs)
+    matchable = read_covisibility(out, min_overlap=0.1, matchable=True)
+    assert matchable and frozenset(names[:2]) in matchable and all(0.1 <= v <= 1 for v in matchable.values())
+    assert set(matchable) <= set(read_covisibility(out, min_overlap=0.0))
+
+
+def test_covisibility_file_of_another_format_is_one_clear_error(tmp_path):
+    (tmp_path / "covisibility.txt").write_text("a.jpg b.jpg 10 0.5\n")  # the 4-column format of older scenes
+    with pytest.raises(SekdError, match="generate the scene again"):
+        read_covisibility(tmp_path)
 
 
 def test_scene_generation_is_deterministic_and_resumable(tiny_scene, tmp_path):
@@ -252,3 +321,22 @@ def test_bench_scale_end_to_end_and_resume(tmp_path, shared):
     stamp = (tmp_path / "n12/result.json").stat().st_mtime_ns
     again = CliRunner().invoke(sekd, args)
     assert again.exit_code == 0 and (tmp_path / "n12/result.json").stat().st_mtime_ns == stamp
+
+
+def test_retrieval_finds_the_true_neighbours_of_a_generated_street(tmp_path, shared):
+    # 40 photos (39 along the street + 1 distractor) at 320 px, SEKD features, the default retrieval.
+    from sekd_sfm.bench.scale.run import retrieval_recall
+    from sekd_sfm.extract import extract_features
+    from sekd_sfm.features import FeatureConfig
+    from sekd_sfm.retrieval import compute_global_descriptors
+
+    scene = tmp_path / "scene"
+    generate_scene(scene, SceneConfig(num_images=40, image_size=320, seed=1), progress=False)
+    features = extract_features(scene / "images", tmp_path / "features.h5", FeatureConfig(max_keypoints=1000),
+                                num_threads=1, progress=False)
+    names = sorted(read_scene(scene)["cameras"])
+    truth = read_covisibility(scene, 0.1, matchable=True)
+    assert len(truth) >= len(names)  # every photo overlaps its walk neighbours
+    recall = retrieval_recall(compute_global_descriptors(features, progress=False), names, truth, 10)
+    assert recall >= 0.9, recall
+    assert retrieval_recall(tmp_path / "missing.global.h5", names, truth, 10) is None

@@ -4,8 +4,10 @@ Layout (world units are metres, z up): a rectangular block, twice as long as wid
 perimeter grows with the number of photos. Along each side stand box buildings (6-14 m
 wide, 6-18 m high, set back 0-1.5 m from the street line, so their side walls show), with
 taller towers behind them on large blocks, and a textured pavement strip in front. Every
-planar face carries its own crop of a photo with its own colour gain, so no two faces look
-alike. The camera walks once around the block (one photo every ``spacing`` m, 6-9 m from the
+planar face carries its own region of a photo (``assign_textures``: disjoint tiles of the
+photos, each also usable mirrored, never one region twice while the photos last) with its
+own colour gain, so no two faces share content: repeated content would hand retrieval and
+matching look-alikes that no real street has this often. The camera walks once around the block (one photo every ``spacing`` m, 6-9 m from the
 facades, 1.5-1.7 m high), looking at the buildings with small yaw / pitch / roll jitter,
 and each photo gets its own exposure (gain and gamma) and sensor noise. A few unrelated
 photos (distractors, never used as textures) are mixed in at random positions.
@@ -21,12 +23,22 @@ Files written into the scene folder::
     images/NNNNN.jpg            the photos (scene photos and distractors, in one name sequence)
     gt_dense_cameras/*.camera   Strecha-format ground truth of the scene photos (bench/strecha.py)
     scene.json                  configuration, per-photo K / R / t (world-to-camera), distractors
-    covisibility.txt            "name0 name1 shared overlap" for every pair of scene photos that
-                                see a common surface point (overlap = shared / min(visible))
+    covisibility.txt            "name0 name1 shared overlap overlap01 overlap10" for every pair of
+                                scene photos that see a common face sample point: overlap =
+                                shared / min(visible); overlap01 = the fraction of photo 0's
+                                surface pixels (an 8 px grid, back-projected with the rendered
+                                depth) that photo 1 sees unoccluded, from a direction at most
+                                MATCHABLE_ANGLE_DEG away; overlap10 the converse
 
 Co-visibility is measured on points sampled over every face (about one per 0.5 m, at
 most 600 per face): a point is seen by a camera when it falls in the image and the face
-drawn at its pixel is its own face (so occlusion counts).
+drawn at its pixel is its own face (so occlusion counts). A surface point seen from two
+directions far apart (a facade from both ends of a street, a corner from two sides) is
+co-visible but not matchable by local features. On these scenes (N = 250, both SIFT and
+SEKD) pairs whose shared points are seen within 60 degrees of each other (median ray angle)
+verify 97-100 % of the time, pairs beyond 90 degrees 0-2 %; hence the pixel overlap
+(points seen within MATCHABLE_ANGLE_DEG, MegaDepth-style depth reprojection) that the
+retrieval ground truth uses.
 """
 from __future__ import annotations
 
@@ -45,12 +57,15 @@ from tqdm import tqdm
 from ...errors import SekdError
 
 logger = logging.getLogger("sekd")
-FORMAT = "sekd-scale-scene/1"
+FORMAT = "sekd-scale-scene/2"
 NEAR = 0.1          # near clipping plane (m)
 MAX_RANGE = 90.0    # faces farther than this are not drawn (m); they would be a few pixels
 DISTRACTOR_POOL = 32  # photos set aside as distractors, never used as textures
 MIN_PERIMETER = 200.0  # keeps the block at least ~24 m wide, so buildings of opposite sides never meet
 SKY_BGR = (235, 206, 170)
+#: Largest angle (deg) between the two viewing rays of a surface point for the point to count
+#: as matchable between two photos (see the module docstring).
+MATCHABLE_ANGLE_DEG = 60.0
 FAR_GROUND_BGR = (96, 100, 104)
 
 
@@ -91,6 +106,7 @@ class Face:
     texture: int                    # index into the texture photo list
     crop: tuple[int, int, int, int]  # x, y, w, h in the photo (level-0 pixels)
     gain: tuple[float, float, float]  # BGR colour gain
+    mirror: bool = False            # texture drawn left-right mirrored (another texture for local features)
     normal: np.ndarray = field(init=False)
 
     def __post_init__(self):
@@ -219,6 +235,33 @@ def build_faces(block: Block, rng: np.random.Generator, textures: int, sizes) ->
                 faces.append(_wall(base + t2 * (b - a), -n2, depth, height, rng, textures, sizes))
         faces += _towers(block, k, rng, textures, sizes)
         faces += _pavement(block, k, rng, textures, sizes)
+    return faces
+
+
+def assign_textures(faces: list[Face], sizes: list[tuple[int, int]], rng: np.random.Generator) -> list[Face]:
+    """Give every face its own texture region, in place; returns ``faces``.
+
+    Each photo (``sizes``: width, height) is cut into a g x g grid of tiles, each tile usable
+    straight or mirrored; g is the smallest grid with at least one (tile, mirror) slot per face.
+    Slots are dealt in a random order without replacement (reused only past 16 x 16 tiles);
+    a face's crop is the largest region of its own aspect inside its tile, scaled 0.8-1.0.
+    """
+    if not faces:
+        return faces
+    g = max(1, math.ceil(math.sqrt(len(faces) / (2 * len(sizes)))))
+    g = min(g, 16)  # tiles of a few dozen pixels would carry no features
+    slots = [(p, r, c, m) for p in range(len(sizes)) for r in range(g) for c in range(g) for m in (False, True)]
+    order = rng.permutation(len(slots))
+    for i, face in enumerate(faces):
+        photo, row, col, mirror = slots[order[i % len(slots)]]
+        tw, th = sizes[photo][0] // g, sizes[photo][1] // g
+        aspect = face.width / face.height
+        cw, ch = (round(th * aspect), th) if tw / th > aspect else (tw, round(tw / aspect))
+        scale = rng.uniform(0.8, 1.0)
+        cw, ch = max(8, min(tw, round(cw * scale))), max(8, min(th, round(ch * scale)))
+        x = col * tw + int(rng.integers(0, tw - cw + 1))
+        y = row * th + int(rng.integers(0, th - ch + 1))
+        face.texture, face.crop, face.mirror = photo, (x, y, cw, ch), mirror
     return faces
 
 
@@ -379,7 +422,16 @@ def _background(camera: Camera) -> np.ndarray:
 
 
 def render(camera: Camera, faces: list[Face], textures: Textures, candidates=None) -> tuple[np.ndarray, np.ndarray]:
-    """``(BGR image H x W x 3 uint8, face index per pixel H x W int32, -1 = none)``.
+    """``(BGR image H x W x 3 uint8, face index per pixel H x W int32, -1 = none)``; see ``render_layers``."""
+    image, face_id, _ = render_layers(camera, faces, textures, candidates)
+    return image, face_id
+
+
+def render_layers(camera: Camera, faces: list[Face], textures: Textures,
+                  candidates=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(BGR image H x W x 3 uint8, face index per pixel H x W int32 (-1 = none), depth H x W float32)``.
+
+    Depth is along the optical axis (m), ``inf`` where no face is drawn.
 
     Each face is warped by the homography from its texture crop to the image, inside the
     projection of its near-clipped polygon, where it is nearer than what is drawn already.
@@ -420,8 +472,10 @@ def render(camera: Camera, faces: list[Face], textures: Textures, candidates=Non
         level = int(np.clip(math.floor(0.5 * math.log2(max(cw * ch / max(area, 1.0), 1.0))), 0, 2))
         scale = 2.0 ** level
         sx, sy = face.width / cw * scale, face.height / ch * scale
-        origin = face.origin - face.u * (cx0 / scale) * sx - face.v * (cy0 / scale) * sy
-        H = K @ np.stack([R @ face.u * sx, R @ face.v * sy, R @ origin + t], axis=1)
+        # Texture axes: mirrored faces run the texture's x from the face's right edge leftwards.
+        tex_u, tex_origin = (-face.u, face.origin + face.u * face.width) if face.mirror else (face.u, face.origin)
+        origin = tex_origin - tex_u * (cx0 / scale) * sx - face.v * (cy0 / scale) * sy
+        H = K @ np.stack([R @ tex_u * sx, R @ face.v * sy, R @ origin + t], axis=1)
         H = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]]) @ H
         warped = cv2.warpPerspective(textures.level(face.texture, level), H, (bw, bh), flags=cv2.INTER_LINEAR,
                                      borderMode=cv2.BORDER_REFLECT)
@@ -431,7 +485,7 @@ def render(camera: Camera, faces: list[Face], textures: Textures, candidates=Non
         np.copyto(image[y0:y1, x0:x1], warped, where=update[:, :, None])
         np.copyto(roi, depth, where=update)
         np.copyto(face_id[y0:y1, x0:x1], np.int32(index), where=update)
-    return image, face_id
+    return image, face_id, zbuf
 
 
 def candidate_faces(camera: Camera, centers: np.ndarray, radii: np.ndarray, origins: np.ndarray,
@@ -525,7 +579,8 @@ def layout_scene(config: SceneConfig) -> Layout:
     if num_scene < 2:
         raise SekdError(f"{config.num_images} images leave {num_scene} scene photos after {num_distractors} distractors")
     block = Block(max(MIN_PERIMETER, num_scene * config.spacing), config.distance)
-    faces = build_faces(block, rng, len(texture_paths), textures.sizes)
+    faces = assign_textures(build_faces(block, rng, len(texture_paths), textures.sizes), textures.sizes,
+                            np.random.default_rng([config.seed, 3]))
     cameras = make_cameras(block, config, num_scene)
     distractor_slots = set(rng.choice(config.num_images, num_distractors, replace=False).tolist())
     names = [f"{i:05d}.jpg" for i in range(config.num_images)]
@@ -555,9 +610,10 @@ def generate_scene(output_dir: str | Path, config: SceneConfig, progress: bool =
     textures, pool, block = layout.textures, layout.pool, layout.block
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "gt_dense_cameras").mkdir(exist_ok=True)
-    visible = _render_all(out, names, distractor_slots, cameras, faces, textures, pool, config, progress)
+    visible, views = _render_all(out, names, distractor_slots, cameras, faces, textures, pool, config, progress)
     scene_names = [n for i, n in enumerate(names) if i not in distractor_slots]
-    write_covisibility(out / "covisibility.txt", scene_names, visible, sum(len(f.samples()) for f in faces))
+    write_covisibility(out / "covisibility.txt", scene_names, visible, len(np.concatenate([f.samples() for f in faces])),
+                       cameras, views)
     record = {"format": FORMAT, "config": _config_record(config), "faces": len(faces),
               "block_m": [2 * block.hx, 2 * block.hy], "path_perimeter_m": block.perimeter,
               "pixel_convention": "OpenCV (integer = pixel centre); COLMAP principal point = ours + 0.5",
@@ -580,14 +636,15 @@ def _config_record(config: SceneConfig) -> dict:
     return data
 
 
-def _render_all(out, names, distractor_slots, cameras, faces, textures, pool, config, progress) -> list[np.ndarray]:
-    """Write every photo and its .camera file; returns the visible sample-point ids of each scene photo."""
+def _render_all(out, names, distractor_slots, cameras, faces, textures, pool, config,
+                progress) -> tuple[list[np.ndarray], list[SurfaceView]]:
+    """Write every photo and its .camera file; returns the visible sample-point ids and surface view of each scene photo."""
     centers = np.array([f.corners().mean(0) for f in faces])
     radii = np.array([0.5 * math.hypot(f.width, f.height) for f in faces])
     origins, normals = np.array([f.origin for f in faces]), np.array([f.normal for f in faces])
     samples = [f.samples() for f in faces]
     offsets = np.cumsum([0] + [len(s) for s in samples])
-    visible, cams = [], iter(cameras)
+    visible, views, cams = [], [], iter(cameras)
     pool_index = {slot: j for j, slot in enumerate(sorted(distractor_slots))}
     for i, name in enumerate(tqdm(names, desc="rendering", unit="image", disable=not progress)):
         rng = np.random.default_rng([config.seed, 2, i])
@@ -601,11 +658,12 @@ def _render_all(out, names, distractor_slots, cameras, faces, textures, pool, co
         else:
             camera = next(cams)
             candidates = candidate_faces(camera, centers, radii, origins, normals)
-            image, face_id = render(camera, faces, textures, candidates)
+            image, face_id, depth = render_layers(camera, faces, textures, candidates)
             visible.append(_visible_points(camera, face_id, samples, offsets, np.unique(face_id[face_id >= 0])))
+            views.append(SurfaceView.of(camera, face_id, depth))
             (out / "gt_dense_cameras" / f"{name}.camera").write_text(_strecha_text(camera))
         _write_image(out / "images" / name, photometric(image, rng), config.jpeg_quality)
-    return visible
+    return visible, views
 
 
 def _visible_points(camera: Camera, face_id: np.ndarray, samples, offsets, drawn) -> np.ndarray:
@@ -632,14 +690,69 @@ def covisibility_counts(visible: list[np.ndarray], num_points: int):
     return (matrix @ matrix.T).tocoo(), np.asarray(matrix.sum(axis=1)).ravel()
 
 
-def write_covisibility(path: Path, names: list[str], visible: list[np.ndarray], num_points: int) -> Path:
-    """Write "name0 name1 shared overlap" for every pair of scene photos with a common sample point."""
+@dataclass
+class SurfaceView:
+    """What one photo sees: surface points on a pixel grid, and which face each pixel shows.
+
+    ``points``: M x 3 world points, one per 8 x 8 pixel cell centre showing a face;
+    ``point_faces``: M face indices of those points; ``faces``: the face index at every
+    ``step``-th pixel (-1 = sky), (H / step) x (W / step) int32.
+    """
+
+    points: np.ndarray
+    point_faces: np.ndarray
+    faces: np.ndarray
+    step: int
+
+    @classmethod
+    def of(cls, camera: Camera, face_id: np.ndarray, depth: np.ndarray, grid: int = 8, step: int = 2) -> SurfaceView:
+        d, f = depth[grid // 2::grid, grid // 2::grid], face_id[grid // 2::grid, grid // 2::grid]
+        rows, cols = np.nonzero(f >= 0)
+        z = d[rows, cols].astype(np.float64)
+        pix = np.stack([cols * grid + grid // 2, rows * grid + grid // 2, np.ones_like(z)], 1)
+        cam = (pix @ np.linalg.inv(camera.K).T) * z[:, None]
+        points = (cam - camera.t) @ camera.R  # R^T (x - t), row by row
+        return cls(points, f[rows, cols], np.ascontiguousarray(face_id[step // 2::step, step // 2::step]), step)
+
+
+def pixel_overlap(view_a: SurfaceView, camera_a: Camera, view_b: SurfaceView, camera_b: Camera,
+                  max_angle: float = MATCHABLE_ANGLE_DEG) -> float:
+    """Fraction of photo a's surface pixels that photo b sees unoccluded (b's pixel there shows the
+    point's own face) from a direction at most ``max_angle`` deg from a's (the two viewing rays)."""
+    if len(view_a.points) == 0:
+        return 0.0
+    pix, z = camera_b.project(view_a.points)
+    col, row = np.floor(pix[:, 0] / view_b.step), np.floor(pix[:, 1] / view_b.step)
+    h, w = view_b.faces.shape
+    inside = (z > NEAR) & (col >= 0) & (row >= 0) & (col < w) & (row < h)
+    k = np.flatnonzero(inside)
+    k = k[view_b.faces[row[k].astype(int), col[k].astype(int)] == view_a.point_faces[k]]
+    angles = pair_ray_angles(view_a.points[k], camera_a.center, camera_b.center)
+    return float((angles <= max_angle).sum() / len(view_a.points))
+
+
+def pair_ray_angles(points: np.ndarray, center_a: np.ndarray, center_b: np.ndarray) -> np.ndarray:
+    """Angle (deg) between the viewing rays from ``center_a`` and ``center_b`` to each of ``points`` (M x 3)."""
+    ra, rb = points - center_a, points - center_b
+    cos = (ra * rb).sum(1) / np.maximum(np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1), 1e-12)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def write_covisibility(path: Path, names: list[str], visible: list[np.ndarray], num_points: int,
+                       cameras: list[Camera], views: list[SurfaceView]) -> Path:
+    """Write "name0 name1 shared overlap overlap01 overlap10" for every pair sharing a sample point.
+
+    ``visible[i]``: ids of the face sample points photo i sees (of ``num_points``);
+    ``overlap01``: ``pixel_overlap`` of photo 0 in photo 1, ``overlap10`` the converse.
+    """
     shared, seen = covisibility_counts(visible, num_points)
     lines = []
     for i, j, count in sorted(zip(shared.row.tolist(), shared.col.tolist(), shared.data.tolist())):
         if i < j and count > 0:
-            overlap = count / max(1, min(seen[i], seen[j]))
-            lines.append(f"{names[i]} {names[j]} {count} {overlap:.4f}\n")
+            o01 = pixel_overlap(views[i], cameras[i], views[j], cameras[j])
+            o10 = pixel_overlap(views[j], cameras[j], views[i], cameras[i])
+            lines.append(f"{names[i]} {names[j]} {count} {count / max(1, min(seen[i], seen[j])):.4f} "
+                         f"{o01:.4f} {o10:.4f}\n")
     path.write_text("".join(lines))
     return path
 
@@ -658,15 +771,25 @@ def read_scene(scene_dir: str | Path) -> dict:
     return data
 
 
-def read_covisibility(scene_dir: str | Path, min_overlap: float = 0.1) -> dict[frozenset, float]:
-    """Ground-truth co-visible pairs ``{frozenset((a, b)): overlap}`` with overlap >= ``min_overlap``."""
+def read_covisibility(scene_dir: str | Path, min_overlap: float = 0.1,
+                      matchable: bool = False) -> dict[frozenset, float]:
+    """Ground-truth pairs ``{frozenset((a, b)): overlap}`` with overlap >= ``min_overlap``.
+
+    ``matchable=False``: every co-visible pair (shared face sample points over the smaller
+    view's); ``matchable=True``: the pixel overlap, the smaller of the two directions: the
+    fraction of each photo's surface pixels that the other sees from at most
+    MATCHABLE_ANGLE_DEG away (the pairs local features can match; the retrieval ground truth).
+    """
     path = Path(scene_dir) / "covisibility.txt"
     try:
         pairs = {}
         for line in path.read_text().splitlines():
-            a, b, _, overlap = line.split()
-            if float(overlap) >= min_overlap:
-                pairs[frozenset((a, b))] = float(overlap)
+            fields = line.split()
+            if len(fields) != 6:
+                raise ValueError(f"{len(fields)} columns, expected 6")
+            overlap = min(float(fields[4]), float(fields[5])) if matchable else float(fields[3])
+            if overlap >= min_overlap:
+                pairs[frozenset(fields[:2])] = overlap
     except (OSError, ValueError) as exc:
         raise SekdError(f"{path}: cannot read the co-visibility file ({exc}); generate the scene again") from None
     return pairs
