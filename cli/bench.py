@@ -47,7 +47,10 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
     click.echo(f"  fast/plain {result['fast_vs_plain']:.2f}x   fast/SIFT {result['fast_vs_sift']:.2f}x")
     if "int8_vs_fast_fp32" in result:
         click.echo(f"  int8/fast fp32 {result['int8_vs_fast_fp32']:.2f}x   int8/SIFT {result['int8_vs_sift']:.2f}x")
-    for key in ("agreement_fast_fp32", "agreement_fast_auto", "agreement_int8"):
+    if "lite_vs_sift" in result:  # SEKD-Lite rows (docs/model_card_lite.md); agreement is against Lite fp32
+        click.echo(f"  lite auto ({result['precision_lite_auto']})/SIFT {result['lite_vs_sift']:.2f}x   "
+                   f"lite fp32/SIFT {result['lite_fp32_vs_sift']:.2f}x   {result['lite_gflop_per_image']:.1f} GFLOP per Lite image")
+    for key in ("agreement_fast_fp32", "agreement_fast_auto", "agreement_int8", "agreement_lite_auto"):
         if key not in result:  # int8: only with the optional extra installed
             continue
         a = result[key]

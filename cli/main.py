@@ -73,6 +73,8 @@ def _register() -> None:
     sekd.add_command(train_commands.evolve); sekd.add_command(train_commands.train)
     from . import adapt as adapt_commands
     sekd.add_command(adapt_commands.adapt)
+    from . import distill as distill_commands
+    sekd.add_command(distill_commands.distill)
 
 
 _register()

@@ -11,15 +11,26 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from torch import nn
 
 from .errors import SekdError
+from .fsio import atomic_output
 from .network import SEKDNet
+from .network_lite import ARCHITECTURE as LITE_ARCHITECTURE
+from .network_lite import SEKDLiteNet, build_lite
+
+#: The ``architecture`` of the full network; checkpoints without an architecture entry
+#: (the authors' release, older runs of this project) are full-network checkpoints.
+FULL_ARCHITECTURE = "sekd"
+ARCHITECTURES = (FULL_ARCHITECTURE, LITE_ARCHITECTURE)
 
 MODELS_DIR = Path(__file__).parent / "models"
 #: The models carried by the package, by the name ``--model`` takes: ``own`` = trained by this
 #: project's ``sekd evolve`` (docs/model_card.md), ``authors`` = the SEKD authors' release
-#: (MIT licence in models/LICENSE-authors.txt; docs/model_card_authors.md).
-EMBEDDED_MODELS = {"own": MODELS_DIR / "sekd_own.pth", "authors": MODELS_DIR / "sekd_authors.pth"}
+#: (MIT licence in models/LICENSE-authors.txt; docs/model_card_authors.md), ``lite`` = SEKD-Lite,
+#: a slim network distilled from ``authors`` (docs/model_card_lite.md).
+EMBEDDED_MODELS = {"own": MODELS_DIR / "sekd_own.pth", "authors": MODELS_DIR / "sekd_authors.pth",
+                   "lite": MODELS_DIR / "sekd_lite.pth"}
 #: The model used when neither --model nor --weights is given: the one that wins on relative
 #: pose and SfM (docs/model_card_authors.md has the numbers).
 DEFAULT_MODEL = "authors"
@@ -45,7 +56,7 @@ def file_sha256(path: Path, length: int = 16) -> str:
 
 
 def embedded_model_path(name: str = DEFAULT_MODEL) -> Path:
-    """The file of the embedded model ``name`` (``own`` or ``authors``); SekdError if unknown or absent."""
+    """The file of the embedded model ``name`` (``own``, ``authors`` or ``lite``); SekdError if unknown or absent."""
     if name not in EMBEDDED_MODELS:
         raise SekdError(f"unknown model {name!r}; choose one of {', '.join(EMBEDDED_MODELS)} or pass --weights PATH")
     path = EMBEDDED_MODELS[name]
@@ -73,28 +84,65 @@ def _state_dict_of(checkpoint: object, path: Path) -> dict:
     return {k.removeprefix("module."): v for k, v in state.items()}
 
 
-def load_model(weights: str | Path | None = None) -> tuple[SEKDNet, ModelInfo]:
-    """Build the network and load a checkpoint strictly; returns it in eval mode on the CPU."""
+def checkpoint_architecture(checkpoint: object, path: Path) -> tuple[str, dict]:
+    """``(architecture, constructor config)`` recorded in a checkpoint's ``'sekd_sfm'`` entry (default: full SEKD)."""
+    meta = checkpoint.get("sekd_sfm", {}) if isinstance(checkpoint, dict) else {}
+    meta = meta if isinstance(meta, dict) else {}
+    architecture = meta.get("architecture", FULL_ARCHITECTURE)
+    if architecture not in ARCHITECTURES:
+        raise SekdError(f"{path}: unknown network architecture {architecture!r} recorded in the checkpoint "
+                        f"(this sekd-sfm knows {', '.join(ARCHITECTURES)}); update sekd-sfm or use another checkpoint")
+    config = meta.get("config", {}) if architecture == LITE_ARCHITECTURE else {}
+    return architecture, dict(config) if isinstance(config, dict) else {}
+
+
+def _network_for(architecture: str, config: dict, path: Path) -> nn.Module:
+    if architecture == FULL_ARCHITECTURE:
+        return SEKDNet()
+    try:
+        return build_lite(config)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise SekdError(f"{path}: invalid SEKD-Lite configuration {config!r} in the checkpoint ({exc})") from exc
+
+
+def load_model(weights: str | Path | None = None, architecture: str | None = None) -> tuple[nn.Module, ModelInfo]:
+    """Build the network the checkpoint records and load it strictly; returns it in eval mode on the CPU.
+
+    The network is a :class:`SEKDNet` or, for checkpoints recording ``architecture: sekd-lite``,
+    a :class:`~sekd_sfm.network_lite.SEKDLiteNet` (both give the same outputs). ``architecture``:
+    the one the caller requires (``"sekd"`` where training code builds the full network);
+    a checkpoint of the other one is a SekdError naming both.
+    """
     path = resolve_weights_path(weights)
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for bad files
         raise SekdError(f"{path}: cannot read checkpoint ({type(exc).__name__}: {exc})".splitlines()[0]) from exc
-    net = SEKDNet()
+    found, config = checkpoint_architecture(checkpoint, path)
+    if architecture is not None and found != architecture:
+        raise SekdError(f"{path}: this is a {_describe(found)} checkpoint, but a {_describe(architecture)} "
+                        f"checkpoint is required here; pass one (e.g. --model {'lite' if architecture == LITE_ARCHITECTURE else DEFAULT_MODEL})")
+    net = _network_for(found, config, path)
     try:
         net.load_state_dict(_state_dict_of(checkpoint, path), strict=True)
     except RuntimeError as exc:
-        raise SekdError(f"{path}: checkpoint does not fit the SEKD network: {str(exc).splitlines()[0]}") from exc
+        raise SekdError(f"{path}: checkpoint does not fit the {_describe(found)} network: {str(exc).splitlines()[0]}") from exc
     meta = checkpoint.get("sekd_sfm", {}) if isinstance(checkpoint, dict) else {}
     return net.eval(), ModelInfo(str(path), file_sha256(path), dict(meta))
+
+
+def _describe(architecture: str) -> str:
+    return "SEKD-Lite (sekd-lite)" if architecture == LITE_ARCHITECTURE else "full SEKD network (sekd)"
 
 
 def save_checkpoint(net: torch.nn.Module, path: Path, meta: dict | None = None) -> Path:
     """Write ``{'state_dict', 'sekd_sfm': meta}`` atomically (temporary file, then rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
     state = {k: v.detach().cpu() for k, v in net.state_dict().items()}
-    torch.save({"state_dict": state, "sekd_sfm": dict(meta or {})}, tmp)
-    tmp.replace(path)
+    meta = dict(meta or {})
+    if isinstance(net, SEKDLiteNet):  # the architecture travels with the weights: load_model rebuilds it
+        meta.update(architecture=LITE_ARCHITECTURE, config=dict(net.config))
+    with atomic_output(path) as tmp:
+        torch.save({"state_dict": state, "sekd_sfm": meta}, tmp)
     return path

@@ -142,7 +142,7 @@ def test_every_model_command_takes_model_and_refuses_both(tmp_path, one_image, c
     args = [a.format(**fill) for a in command] + ["--model", "own", "--weights", str(AUTHORS)]
     result = CliRunner().invoke(sekd, args)
     assert result.exit_code == 1 and result.output.startswith("Error: --model own and --weights"), result.output
-    assert "--model [own|authors]" in CliRunner().invoke(sekd, command[:2] + ["--help"]).output
+    assert "--model [own|authors|lite]" in CliRunner().invoke(sekd, command[:2] + ["--help"]).output
 
 
 def test_training_wall_time_sums_each_process_run(tmp_path):

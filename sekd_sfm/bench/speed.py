@@ -1,4 +1,5 @@
-"""``sekd bench speed``: images/s at a fixed size for plain fp32, the fast path, int8 (optional extra) and OpenCV SIFT.
+"""``sekd bench speed``: images/s at a fixed size for plain fp32, the fast path, int8 (optional extra),
+SEKD-Lite (fast fp32 and the precision ``auto`` picks) and OpenCV SIFT.
 
 All methods run in the same process on the same decoded images, so their ratios are
 meaningful on a noisy machine. The plain path runs first, before the fast path tunes
@@ -101,13 +102,29 @@ def agreement(reference: list[dict], other: list[dict]) -> dict[str, float]:
     return {"same_pixel": same / max(total, 1), "cosine_median": float(np.median(cos)), "cosine_min": float(cos.min())}
 
 
+def embedded_lite() -> nn.Module | None:
+    """The embedded SEKD-Lite network, or None when this installation has none."""
+    from ..weights import EMBEDDED_MODELS, load_model
+
+    path = EMBEDDED_MODELS.get("lite")
+    return load_model(path)[0] if path is not None and path.is_file() else None
+
+
 def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int = 480, width: int = 640,
-                    repeats: int = 2, max_keypoints: int = 2000, num_threads: int | None = None) -> dict:
-    """Run every method on the same images; returns rates, ratios, GFLOP/s and fast-vs-fp32 agreement."""
+                    repeats: int = 2, max_keypoints: int = 2000, num_threads: int | None = None,
+                    lite: nn.Module | None | str = "embedded") -> dict:
+    """Run every method on the same images; returns rates, ratios, GFLOP/s and fast-vs-fp32 agreement.
+
+    ``lite``: the SEKD-Lite network timed beside ``net`` ("embedded": the packaged one when
+    present; None: no Lite rows). Its agreement is measured against its own fp32 output.
+    """
     threads = set_num_threads(num_threads)
     images = load_bench_images(image_dir, count, height, width)
     gflop = 2 * count_macs(net, height, width) / 1e9
-    config = SEKDConfig(max_keypoints=max_keypoints, device="cpu")
+    lite = embedded_lite() if isinstance(lite, str) else lite
+    # Integer keypoints: the agreement columns compare the networks' outputs, which sub-pixel
+    # offsets (fitted on each path's own probability map) would blur; their cost is negligible.
+    config = SEKDConfig(max_keypoints=max_keypoints, device="cpu", subpixel=False)
     # Built lazily and in this order: the fast path tunes the allocator process-wide.
     factories = {
         "sekd plain fp32": lambda: PlainSEKD(net, config),
@@ -118,6 +135,9 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
     from .. import int8
     if int8.available():  # optional extra; its one-time calibration runs before timing (cached per weights)
         factories["sekd int8"] = lambda: SEKDExtractor(net, SEKDConfig(**{**config.as_dict(), "precision": "int8"}))
+    if lite is not None:
+        factories["sekd lite fp32"] = lambda: SEKDExtractor(lite, SEKDConfig(**{**config.as_dict(), "precision": "fp32"}))
+        factories["sekd lite auto"] = lambda: SEKDExtractor(lite, config)
     rates, outputs, methods = {}, {}, {}
     for name, factory in factories.items():
         methods[name] = factory()
@@ -128,11 +148,19 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
         extra = {"int8_vs_fast_fp32": rates["sekd int8"] / rates["sekd fast fp32"],
                  "int8_vs_sift": rates["sekd int8"] / rates["opencv sift"],
                  "agreement_int8": agreement(outputs["sekd plain fp32"], outputs["sekd int8"])}
+    gflop_of = {name: gflop for name in rates}
+    if lite is not None:
+        lite_gflop = 2 * count_macs(lite, height, width) / 1e9
+        gflop_of.update({"sekd lite fp32": lite_gflop, "sekd lite auto": lite_gflop})
+        extra.update({"lite_gflop_per_image": lite_gflop, "precision_lite_auto": methods["sekd lite auto"].model.precision,
+                      "lite_vs_sift": rates["sekd lite auto"] / rates["opencv sift"],
+                      "lite_fp32_vs_sift": rates["sekd lite fp32"] / rates["opencv sift"],
+                      "agreement_lite_auto": agreement(outputs["sekd lite fp32"], outputs["sekd lite auto"])})
     return {
         "images": count, "size": [height, width], "threads": threads, "gflop_per_image": gflop,
         "precision_auto": methods[fast].model.precision,
         "images_per_s": rates,
-        "gflop_per_s": {k: v * gflop for k, v in rates.items() if k.startswith("sekd")},
+        "gflop_per_s": {k: v * gflop_of[k] for k, v in rates.items() if k.startswith("sekd")},
         "fast_vs_plain": rates[fast] / rates["sekd plain fp32"],
         "fast_vs_sift": rates[fast] / rates["opencv sift"],
         "agreement_fast_fp32": agreement(outputs["sekd plain fp32"], outputs["sekd fast fp32"]),

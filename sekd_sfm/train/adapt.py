@@ -67,10 +67,14 @@ def run_folder(output: Path) -> Path:
 
 def start_weights(start: str) -> Path:
     """The checkpoint ``start`` names: an embedded model (``own``, ``authors``) or a file."""
+    full = [name for name in EMBEDDED_MODELS if name != "lite"]  # self-evolving training builds the full network
     if start in EMBEDDED_MODELS:
+        if start not in full:
+            raise SekdError(f"--from {start}: adaptation trains the full SEKD network; start from "
+                            f"{' or '.join(full)}, or a full-network checkpoint")
         return embedded_model_path(start)
     if not Path(start).expanduser().is_file():
-        raise SekdError(f"{start}: neither {' nor '.join(EMBEDDED_MODELS)} nor an existing checkpoint file; "
+        raise SekdError(f"{start}: neither {' nor '.join(full)} nor an existing checkpoint file; "
                         "pass --from own, --from authors or --from PATH to a .pth")
     return resolve_weights_path(start).resolve()
 

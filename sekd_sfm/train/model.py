@@ -28,7 +28,7 @@ def new_network(seed: int) -> SEKDNet:
 def initial_network(weights: str, seed: int) -> SEKDNet:
     """The starting model: a checkpoint when ``weights`` is set, else a seeded random network."""
     if weights:
-        return load_model(Path(weights).expanduser())[0]
+        return load_model(Path(weights).expanduser(), architecture="sekd")[0]  # training builds SEKDNet: refuse a Lite checkpoint
     return new_network(seed)
 
 

@@ -1,0 +1,67 @@
+"""``sekd distill``: train SEKD-Lite by distillation from a full SEKD model."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from sekd_sfm.errors import SekdError
+from sekd_sfm.train.distill import DistillConfig
+from sekd_sfm.train.distill import distill as run_distill
+from sekd_sfm.weights import DEFAULT_MODEL
+
+
+@click.command()
+@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Run folder: config.json, state.pt, last.pth, metrics.jsonl and the final student.pth.")
+@click.option("--teacher", default=None, metavar="own|authors|PATH",
+              help=f"Full SEKD model to distil: an embedded one or a checkpoint file. Default: {DEFAULT_MODEL}.")
+@click.option("--photos", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Folder of training photos. Default: the shared COCO photos ($SEKD_SHARED/data/train/coco).")
+@click.option("--steps", type=click.IntRange(min=1), default=None, help="Training steps (default 3000).")
+@click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Crops per step (default 8).")
+@click.option("--crop", type=(int, int), default=None, metavar="H W",
+              help="Crop size in pixels, multiples of 4 (default 192 256).")
+@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None, help="Peak learning rate (default 3e-3).")
+@click.option("--channels", type=(int, int, int), default=None, metavar="C0 C1 C2",
+              help="Student channels at full, 1/2 and 1/4 resolution, multiples of 8 (default 16 32 64).")
+@click.option("--val-every", type=click.IntRange(min=1), default=None, help="Steps between validations (default 250).")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Random seed (default 0).")
+@click.option("--num-threads", type=click.IntRange(min=0), default=1, show_default=True,
+              help="CPU threads (0: all cores).")
+@click.option("--resume", is_flag=True, help="Continue the interrupted run in OUTPUT with its recorded settings.")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+def distill(output, teacher, photos, steps, batch_size, crop, lr, channels, val_every, seed, num_threads, resume,
+            no_progress) -> None:
+    """Train a SEKD-Lite network to reproduce a full SEKD model's outputs.
+
+    \b
+    Teacher and student see the same augmented crops (random perspective warps, scale,
+    rotation, brightness/contrast/gamma, blur, noise) of the training photos; the student
+    learns the teacher's keypoint probabilities (peak-weighted cross-entropy) and its
+    descriptors (1 - cosine at every 1/4 cell). The last 16 photos are held out: every
+    --val-every steps the log shows the share of the teacher's keypoints the student finds
+    within 2 px and the median descriptor cosine at them. The state is saved every 3 minutes;
+    an interrupted run continues with --resume. The result (OUTPUT/student.pth) loads
+    wherever --weights does; the architecture is recorded in the checkpoint.
+
+    \b
+    Examples:
+      sekd distill -o runs/lite                                   # shared COCO photos, 3000 steps
+      sekd distill -o runs/lite --steps 6000 --num-threads 2
+      sekd distill -o runs/lite --resume                          # after Ctrl-C or a crash
+      sekd extract photos/ -o features.h5 --weights runs/lite/student.pth
+    """
+    given = {"teacher": teacher, "photos": str(photos) if photos else None, "steps": steps, "batch_size": batch_size,
+             "crop": list(crop) if crop else None, "lr": lr, "val_every": val_every, "seed": seed,
+             "student": {"channels": list(channels)} if channels else None}
+    given = {k: v for k, v in given.items() if v is not None}
+    if resume and given:
+        raise SekdError(f"--resume continues {output} with its recorded settings; drop "
+                        + ", ".join("--" + k.replace("_", "-") for k in given))
+    config = None
+    if not resume:
+        config = DistillConfig()
+        for key, value in given.items():
+            setattr(config, key, {**config.student, **value} if key == "student" else value)
+    click.echo(str(run_distill(output, config, resume=resume, num_threads=num_threads, progress=not no_progress)))

@@ -1,0 +1,427 @@
+"""Distillation of SEKD-Lite from a full SEKD model (``sekd distill``, docs/model_card_lite.md).
+
+The teacher (a full SEKD checkpoint, fp32, eval mode) and the student (:class:`SEKDLiteNet`)
+see the same augmented grayscale crops of training photos: a random perspective warp of a
+random window at a random scale, then photometric jitter (gain, bias, gamma, blur, noise).
+The student learns to reproduce the teacher's outputs:
+
+- detector: squared error between the student's and the teacher's keypoint logits
+  (``log p / (1 - p)``). The teacher's probabilities lie within a few hundredths of 0.5
+  almost everywhere and extraction keeps the local maxima above 0.4, so what must be
+  copied is the fine ranking of nearby pixels: the logit spreads it ~4x wider than the
+  probability, and a cross-entropy against targets near 0.5 would be almost flat. Pixels
+  where the teacher has a keypoint (local maximum over 9 x 9 above 0.4, as extraction
+  finds them) weigh ``1 + peak_weight``;
+- descriptor: ``1 - cos`` between the L2-normalised student and teacher descriptors at every
+  1/4-resolution cell, cells holding a teacher keypoint weighted ``1 + peak_weight``
+  (descriptors are sampled at keypoints).
+
+Run folder (glue-factory style): ``config.json`` (every setting), ``state.pt`` (student,
+optimiser, step; written atomically every few minutes and at the end), ``last.pth`` (the
+student as a loadable checkpoint, same times), ``metrics.jsonl`` (training losses and
+validation numbers against the teacher on held-out photos), ``student.pth`` (final model).
+Every random draw depends only on (seed, step, sample), so ``resume=True`` continues an
+interrupted run exactly where its last state left it.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from ..errors import SekdError
+from ..inference import nms_keypoints, sample_descriptors
+from ..locking import exclusive_lock
+from ..network import SEKDNet, use_fast_deconv
+from ..network_lite import DEFAULT_CONFIG, SEKDLiteNet, build_lite
+from ..runtime import set_num_threads, shared_dir
+from ..weights import (
+    DEFAULT_MODEL,
+    FULL_ARCHITECTURE,
+    embedded_model_path,
+    file_sha256,
+    load_model,
+    save_checkpoint,
+)
+from .data import TrainImages
+
+CONFIG_NAME, STATE_NAME, LAST_NAME, FINAL_NAME, METRICS_NAME = (
+    "config.json", "state.pt", "last.pth", "student.pth", "metrics.jsonl")
+
+
+@dataclass
+class DistillConfig:
+    """Every setting of a distillation run (saved as ``config.json`` in the run folder)."""
+
+    teacher: str = DEFAULT_MODEL          # embedded model name or checkpoint path (full SEKD network)
+    photos: str = ""                      # folder of training photos ("" = shared COCO photos)
+    student: dict = field(default_factory=lambda: copy.deepcopy(DEFAULT_CONFIG))  # SEKDLiteNet config
+    steps: int = 3000
+    batch_size: int = 8
+    crop: list = field(default_factory=lambda: [192, 256])  # height, width (multiples of 4)
+    long_side: int = 512                  # photos are resized to this long side before cropping
+    scale_range: list = field(default_factory=lambda: [0.5, 1.0])  # crop scale relative to long_side
+    perspective: float = 0.15             # max corner displacement, fraction of the crop size
+    rotation_deg: float = 20.0
+    lr: float = 3e-3
+    lr_min: float = 3e-5                  # cosine decay from lr to lr_min over the steps
+    warmup_steps: int = 100
+    weight_decay: float = 1e-5
+    peak_weight: float = 20.0
+    detector_weight: float = 10.0         # total loss = detector_weight * detector + descriptor_weight * descriptor
+    descriptor_weight: float = 1.0
+    val_photos: int = 16                  # the last photos (sorted names) are held out for validation
+    val_every: int = 250                  # steps between validations
+    save_every_s: float = 180.0           # seconds between state writes
+    seed: int = 0
+
+    def check(self) -> None:
+        """SekdError for settings that cannot run."""
+        if self.steps < 1 or self.batch_size < 1:
+            raise SekdError(f"--steps and --batch-size must be >= 1 (got {self.steps}, {self.batch_size})")
+        if len(self.crop) != 2 or any(c < 16 or c % 4 for c in self.crop):
+            raise SekdError(f"--crop must be HEIGHT WIDTH, multiples of 4 and >= 16 (got {self.crop})")
+        if not 0 < self.scale_range[0] <= self.scale_range[1]:
+            raise SekdError(f"scale_range must satisfy 0 < low <= high (got {self.scale_range})")
+        try:
+            build_lite(self.student)
+        except (ValueError, TypeError, KeyError) as exc:
+            raise SekdError(f"invalid student configuration {self.student}: {exc}") from exc
+
+
+# --- data --------------------------------------------------------------------------------
+
+def photo_folder(config: DistillConfig) -> Path:
+    """The training photo folder: ``config.photos`` or the shared COCO photos."""
+    return Path(config.photos).expanduser() if config.photos else shared_dir() / "data" / "train" / "coco"
+
+
+def split_photos(count: int, val_photos: int) -> tuple[list[int], list[int]]:
+    """(training, validation) indices: the last ``val_photos`` photos validate, never more than half."""
+    val = min(val_photos, count // 2)
+    return list(range(count - val)), list(range(count - val, count))
+
+
+def random_homography(rng: np.random.Generator, image_hw: tuple[int, int], crop_hw: tuple[int, int],
+                      config: DistillConfig) -> np.ndarray:
+    """3x3 map from crop pixels to image pixels: a random window at a random scale, rotated and perspective-distorted."""
+    (h, w), (ch, cw) = image_hw, crop_hw
+    scale = rng.uniform(*config.scale_range)
+    # Window size in image pixels (a crop pixel covers 1/scale image pixels), never larger than the image.
+    wh, ww = min(h, ch / scale), min(w, cw / scale)
+    cy, cx = rng.uniform(wh / 2, h - wh / 2), rng.uniform(ww / 2, w - ww / 2)
+    corners = np.array([[-ww / 2, -wh / 2], [ww / 2, -wh / 2], [ww / 2, wh / 2], [-ww / 2, wh / 2]])
+    corners += rng.uniform(-config.perspective, config.perspective, (4, 2)) * [ww, wh]
+    a = np.deg2rad(rng.uniform(-config.rotation_deg, config.rotation_deg))
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    target = corners @ rot.T + [cx, cy]
+    source = np.array([[0, 0], [cw - 1, 0], [cw - 1, ch - 1], [0, ch - 1]], dtype=np.float64)
+    return cv2.getPerspectiveTransform(source.astype(np.float32), target.astype(np.float32))
+
+
+def photometric(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Gain, bias, gamma, occasional blur and noise on a float ``H x W`` image in [0, 1]."""
+    image = np.clip(image * rng.uniform(0.6, 1.4) + rng.uniform(-0.15, 0.15), 0, 1)
+    image = image ** rng.uniform(0.7, 1.4)
+    if rng.random() < 0.25:
+        image = cv2.GaussianBlur(image, (0, 0), rng.uniform(0.3, 1.2))
+    if rng.random() < 0.5:
+        image = image + rng.normal(0, rng.uniform(0.0, 0.03), image.shape)
+    # Training photos are 8-bit: round like a decoded image so teacher and student see real inputs.
+    return np.round(np.clip(image, 0, 1) * 255) / 255
+
+
+def make_sample(gray: np.ndarray, rng: np.random.Generator, config: DistillConfig) -> np.ndarray:
+    """One augmented ``crop_h x crop_w`` float32 view in [0, 1] of an ``H x W`` uint8 photo."""
+    ch, cw = config.crop
+    homography = random_homography(rng, gray.shape, (ch, cw), config)
+    warped = cv2.warpPerspective(gray, homography, (cw, ch), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                 borderMode=cv2.BORDER_REFLECT_101)
+    return photometric(warped.astype(np.float64) / 255, rng).astype(np.float32)
+
+
+class GrayPhotos:
+    """Grayscale uint8 photos resized to ``long_side`` (cached), read through the training loader."""
+
+    def __init__(self, folder: Path, long_side: int):
+        if not folder.is_dir():
+            raise SekdError(f"{folder}: photo folder not found; pass --photos with a folder of images")
+        self.images = TrainImages(folder, long_side, multiple=4)
+        if len(self.images) < 2:
+            raise SekdError(f"{folder}: distillation needs at least 2 photos, found {len(self.images)}")
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def gray(self, index: int) -> np.ndarray:
+        return cv2.cvtColor(self.images.rgb(index), cv2.COLOR_RGB2GRAY)
+
+
+def batch_for(photos: GrayPhotos, indices: list[int], step: int, config: DistillConfig) -> torch.Tensor:
+    """The training batch of ``step``: ``B x 1 x h x w``, depending only on (seed, step)."""
+    rng = np.random.default_rng([config.seed, 1, step])
+    chosen = rng.choice(indices, size=config.batch_size, replace=len(indices) < config.batch_size)
+    views = [make_sample(photos.gray(int(i)), np.random.default_rng([config.seed, 2, step, k]), config)
+             for k, i in enumerate(chosen)]
+    return torch.from_numpy(np.stack(views))[:, None]
+
+
+def validation_batch(photos: GrayPhotos, indices: list[int], config: DistillConfig) -> torch.Tensor:
+    """Fixed validation views (one per held-out photo, seed-independent)."""
+    views = [make_sample(photos.gray(i), np.random.default_rng([12345, 3, i]), config) for i in indices]
+    return torch.from_numpy(np.stack(views))[:, None]
+
+
+# --- losses ------------------------------------------------------------------------------
+
+def teacher_peaks(teacher_logit: torch.Tensor, radius: int = 4, threshold: float = 0.4) -> torch.Tensor:
+    """``B x 1 x H x W`` float mask of the teacher's keypoints: local maxima over (2r+1)^2 above ``threshold``."""
+    pooled = F.max_pool2d(teacher_logit, 2 * radius + 1, stride=1, padding=radius)
+    return ((teacher_logit == pooled) & (teacher_logit > math.log(threshold / (1 - threshold)))).float()
+
+
+def distill_losses(logits: torch.Tensor, desc: torch.Tensor, teacher_logit: torch.Tensor, teacher_desc: torch.Tensor,
+                   peak_weight: float) -> dict[str, torch.Tensor]:
+    """Detector logit squared error and descriptor ``1 - cos``, both peak-weighted (see the module docstring).
+
+    ``logits`` B x 2 x H x W (student), ``teacher_logit`` B x 1 x H x W (``logit1 - logit0``),
+    ``desc``/``teacher_desc`` B x 128 x H/4 x W/4 raw.
+    """
+    peaks = teacher_peaks(teacher_logit)
+    weight = 1 + peak_weight * peaks
+    error = (logits[:, 1:2] - logits[:, 0:1] - teacher_logit) ** 2
+    detector = (weight * error).sum() / weight.sum()
+    cos = (F.normalize(desc, dim=1) * F.normalize(teacher_desc, dim=1)).sum(1, keepdim=True)
+    cell_weight = 1 + peak_weight * F.max_pool2d(peaks, 4)
+    descriptor = (cell_weight * (1 - cos)).sum() / cell_weight.sum()
+    return {"detector": detector, "descriptor": descriptor}
+
+
+class Teacher:
+    """The full SEKD network in fp32 eval mode, prepared for speed (block-diagonal deconvolutions, channels-last)."""
+
+    def __init__(self, net: SEKDNet):
+        self.net = use_fast_deconv(copy.deepcopy(net).eval()).to(memory_format=torch.channels_last)
+        for p in self.net.parameters():
+            p.requires_grad_(False)
+
+    @torch.no_grad()  # not inference_mode: its outputs are loss targets that autograd must save
+    def __call__(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``B x 1 x H x W`` -> (keypoint logit ``logit1 - logit0`` B x 1 x H x W, raw descriptors B x 128 x H/4 x W/4)."""
+        logits, desc, _ = self.net.forward_train(images.contiguous(memory_format=torch.channels_last))
+        return (logits[:, 1:2] - logits[:, 0:1]).contiguous(), desc.contiguous()
+
+
+@torch.no_grad()
+def validate(student: SEKDLiteNet, teacher: Teacher, images: torch.Tensor, peak_weight: float,
+             max_keypoints: int = 500) -> dict[str, float]:
+    """Student vs teacher on fixed held-out views.
+
+    ``repeatability``: share of the teacher's top ``max_keypoints`` keypoints the student
+    detects within 2 px (same NMS as extraction); ``cosine_median``: median descriptor cosine at
+    the teacher's keypoints (descriptors sampled as at extraction); plus both losses.
+    """
+    was_training = student.training
+    student.eval()
+    logits, desc, _ = student.forward_train(images)
+    t_logit, t_desc = teacher(images)
+    t_prob = torch.sigmoid(t_logit)  # = the softmax probability of the keypoint class
+    losses = {k: float(v) for k, v in distill_losses(logits, desc, t_logit, t_desc, peak_weight).items()}
+    s_prob = F.softmax(logits, dim=1)[:, 1]
+    hits, total, cosines = 0, 0, []
+    h, w = images.shape[-2:]
+    for b in range(images.shape[0]):
+        t_xy, _ = nms_keypoints(t_prob[b, 0], 4, 0.4, max_keypoints)
+        s_xy, _ = nms_keypoints(s_prob[b], 4, 0.4, max_keypoints)
+        if len(t_xy):
+            total += len(t_xy)
+            if len(s_xy):
+                hits += int((torch.cdist(t_xy.float(), s_xy.float()).min(1).values <= 2).sum())
+            cos = (sample_descriptors(desc[b], t_xy.float(), h, w) * sample_descriptors(t_desc[b], t_xy.float(), h, w)).sum(1)
+            cosines.append(cos)
+    student.train(was_training)
+    cos = torch.cat(cosines) if cosines else torch.zeros(1)
+    return {**losses, "repeatability": hits / max(total, 1), "cosine_median": float(cos.median()),
+            "teacher_keypoints": total / images.shape[0]}
+
+
+# --- the run -----------------------------------------------------------------------------
+
+def learning_rate(step: int, config: DistillConfig) -> float:
+    """Linear warm-up, then cosine decay from ``lr`` to ``lr_min`` at the last step."""
+    if step < config.warmup_steps:
+        return config.lr * (step + 1) / config.warmup_steps
+    t = (step - config.warmup_steps) / max(config.steps - config.warmup_steps, 1)
+    return config.lr_min + 0.5 * (config.lr - config.lr_min) * (1 + math.cos(math.pi * min(t, 1.0)))
+
+
+def _teacher_path(config: DistillConfig) -> Path:
+    try:
+        return embedded_model_path(config.teacher)
+    except SekdError:
+        if Path(config.teacher).expanduser().is_file():
+            return Path(config.teacher).expanduser()
+        raise SekdError(f"--teacher {config.teacher}: neither an embedded model nor an existing checkpoint file") from None
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    tmp.replace(path)
+
+
+def _save_state(folder: Path, student: SEKDLiteNet, state: dict, meta: dict) -> None:
+    """Student checkpoint, then the training state (both atomic): a kill between them loses nothing needed.
+
+    ``state``: ``{'student', 'optimizer', 'step'}`` taken at the end of a step (never mid-step:
+    a forward pass in training mode already moves the BatchNorm statistics).
+    """
+    net = copy.deepcopy(student)
+    net.load_state_dict(state["student"])
+    save_checkpoint(net, folder / LAST_NAME, {**meta, "step": state["step"]})
+    tmp = folder / (STATE_NAME + ".tmp")
+    torch.save(state, tmp)
+    tmp.replace(folder / STATE_NAME)
+
+
+def _snapshot(student: SEKDLiteNet, optimizer: torch.optim.Optimizer, step: int) -> dict:
+    """A copy of the training state after ``step`` steps (the student is small: a copy costs ~1 ms)."""
+    return {"student": copy.deepcopy(student.state_dict()), "optimizer": copy.deepcopy(optimizer.state_dict()),
+            "step": step}
+
+
+def _trim_metrics(folder: Path, step: int) -> None:
+    """Drop records after ``step`` (written after the last saved state by a run that was killed) before resuming."""
+    path = folder / METRICS_NAME
+    if not path.is_file():
+        return
+    kept = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line).get("step", 0) <= step]
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text("".join(line + "\n" for line in kept))
+    tmp.replace(path)
+
+
+def _log(folder: Path, record: dict) -> None:
+    with open(folder / METRICS_NAME, "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def resumed_config(folder: Path) -> DistillConfig:
+    """The recorded configuration of the run in ``folder``; SekdError if there is none."""
+    path = folder / CONFIG_NAME
+    if not path.is_file():
+        raise SekdError(f"{folder}: no distillation to resume ({CONFIG_NAME} not found); start one without --resume")
+    try:
+        data = json.loads(path.read_text())
+        known = {f.name for f in fields(DistillConfig)}
+        return DistillConfig(**{k: v for k, v in data["config"].items() if k in known})
+    except (ValueError, KeyError, TypeError) as exc:
+        raise SekdError(f"{path}: unreadable run configuration ({exc}); start a new run in another folder") from exc
+
+
+def distill(output: str | Path, config: DistillConfig | None = None, resume: bool = False,
+            num_threads: int | None = 1, progress: bool = True) -> Path:
+    """Train SEKD-Lite from ``config.teacher`` into the run folder ``output``; returns the final ``student.pth``.
+
+    ``resume``: continue the run recorded in ``output`` (its ``config.json``; ``config`` is ignored).
+    """
+    folder = Path(output).expanduser()
+    if resume:
+        config = resumed_config(folder)
+    else:
+        config = config or DistillConfig()
+        if (folder / CONFIG_NAME).exists():
+            raise SekdError(f"{folder}: a distillation run already lives here; continue it with --resume "
+                            "or choose another output folder")
+    config.check()
+    folder.mkdir(parents=True, exist_ok=True)
+    threads, cv_threads = torch.get_num_threads(), cv2.getNumThreads()
+    set_num_threads(num_threads)
+    cv2.setNumThreads(1)  # augmentation stays on the threads given to torch
+    try:
+        return _run(folder, config, resume, progress)
+    finally:  # a library call must not change the caller's thread settings
+        torch.set_num_threads(threads)
+        cv2.setNumThreads(cv_threads)
+
+
+def _run(folder: Path, config: DistillConfig, resume: bool, progress: bool) -> Path:
+    with exclusive_lock(folder, "run folder"):
+        teacher_path = _teacher_path(config)
+        teacher_net, _ = load_model(teacher_path, architecture=FULL_ARCHITECTURE)
+        photos = GrayPhotos(photo_folder(config), config.long_side)
+        if not resume:
+            _write_json(folder / CONFIG_NAME, {"config": asdict(config), "teacher_file": str(teacher_path),
+                                               "teacher_sha256": file_sha256(teacher_path),
+                                               "photo_count": len(photos)})
+        return _train(folder, config, Teacher(teacher_net), photos, teacher_path, progress)
+
+
+def _train(folder: Path, config: DistillConfig, teacher: Teacher, photos: GrayPhotos, teacher_path: Path,
+           progress: bool) -> Path:
+    torch.manual_seed(config.seed)
+    student = build_lite(config.student).train()
+    optimizer = torch.optim.AdamW(student.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    step = 0
+    if (folder / STATE_NAME).is_file():
+        try:
+            state = torch.load(folder / STATE_NAME, map_location="cpu", weights_only=True)
+            student.load_state_dict(state["student"])
+            optimizer.load_state_dict(state["optimizer"])
+            step = int(state["step"])
+        except Exception as exc:  # a state file written by another version or damaged
+            raise SekdError(f"{folder / STATE_NAME}: cannot resume from this state ({type(exc).__name__}: "
+                            f"{str(exc).splitlines()[0] if str(exc) else ''}); start a new run in another folder") from exc
+    _trim_metrics(folder, step)
+    train_idx, val_idx = split_photos(len(photos), config.val_photos)
+    val_images = validation_batch(photos, val_idx, config)
+    meta = {"teacher": Path(teacher_path).name, "teacher_sha256": file_sha256(teacher_path),
+            "distill_config": asdict(config), "photos": len(train_idx)}
+    last_save = time.monotonic()
+    done = _snapshot(student, optimizer, step)
+    bar = tqdm(total=config.steps, initial=step, desc="distill", unit="step", disable=not progress)
+    try:
+        while step < config.steps:
+            images = batch_for(photos, train_idx, step, config)
+            t_logit, t_desc = teacher(images)
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate(step, config)
+            logits, desc, _ = student.forward_train(images)
+            losses = distill_losses(logits, desc, t_logit, t_desc, config.peak_weight)
+            loss = config.detector_weight * losses["detector"] + config.descriptor_weight * losses["descriptor"]
+            losses = {k: v.detach() for k, v in losses.items()}  # scalars for the log, outside the graph
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            loss = loss.detach()
+            optimizer.step()
+            step += 1
+            done = _snapshot(student, optimizer, step)
+            bar.update(1)
+            bar.set_postfix(det=f"{float(losses['detector']):.5f}", desc=f"{float(losses['descriptor']):.3f}")
+            record = {"step": step, "lr": learning_rate(step - 1, config), "loss": float(loss),
+                      **{k: float(v) for k, v in losses.items()}}
+            _log(folder, {**record, "time": time.time()})
+            if step % config.val_every == 0 or step == config.steps:
+                val = validate(student, teacher, val_images, config.peak_weight)
+                _log(folder, {"step": step, "val": val, "time": time.time()})
+                bar.write(f"step {step}: " + ", ".join(f"{k} {v:.4f}" for k, v in val.items()))
+            if time.monotonic() - last_save >= config.save_every_s or step == config.steps:
+                _save_state(folder, student, done, meta)
+                last_save = time.monotonic()
+    except KeyboardInterrupt:
+        _save_state(folder, student, done, meta)
+        raise SekdError(f"interrupted at step {done['step']}; continue with: sekd distill -o {folder} --resume") from None
+    finally:
+        bar.close()
+    final = folder / FINAL_NAME
+    save_checkpoint(student.eval(), final, {**meta, "step": step})
+    return final
