@@ -47,7 +47,8 @@ def weights_option(f):
         "--model", type=click.Choice(tuple(EMBEDDED_MODELS)), default=None, is_eager=True, expose_value=False,
         callback=_keep_model,
         help=f"Embedded SEKD model (default {DEFAULT_MODEL}): authors = the SEKD authors' release (MIT), "
-             "own = trained by this project's `sekd evolve` (docs/model_card*.md).",
+             "own = trained by this project's `sekd evolve`, lite = SEKD-Lite, distilled from authors, "
+             "several times faster (docs/model_card*.md).",
     )(f)
 
 
@@ -78,7 +79,9 @@ def feature_options(f):
         click.option("--resize-max", type=click.IntRange(min=16), default=None,
                      help="Downscale images so the long side is at most N px; keypoints are mapped back to original pixels."),
         click.option("--multi-scale", is_flag=True, help="SEKD: also detect on /2, /4, ... downscaled images."),
-        click.option("--subpixel", is_flag=True, help="SEKD: refine keypoints to sub-pixel accuracy (quadratic fit)."),
+        click.option("--subpixel/--no-subpixel", default=True, show_default=True,
+                     help="SEKD: refine keypoints to sub-pixel accuracy (quadratic fit); --no-subpixel keeps the "
+                          "integer pixel of each peak, as the SEKD paper's protocol."),
     ]
     for option in reversed(options):
         f = option(f)

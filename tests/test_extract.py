@@ -222,3 +222,20 @@ def test_summary_line_counts_images_merged_at_checkpoints(tmp_path, caplog):
     extract_features(tmp_path / "img", tmp_path / "f.h5", FeatureConfig(feature="sift"), progress=False,
                      checkpoint_seconds=0.0)
     assert "3 images written this run, 0 failed, 3 in the file" in caplog.text
+
+
+def test_cli_keypoints_are_sub_pixel_by_default_and_integer_with_no_subpixel(images, tmp_path, shared):
+    from click.testing import CliRunner
+    from sekd_sfm.cli.main import sekd
+
+    runs = {}
+    for flag in ([], ["--no-subpixel"]):
+        out = tmp_path / f"f{len(flag)}.h5"
+        result = CliRunner().invoke(sekd, ["extract", str(images), "-o", str(out), "--weights", str(SEKD_WEIGHTS),
+                                           "--max-keypoints", "200", "--precision", "fp32", "--num-threads", "1", *flag])
+        assert result.exit_code == 0, result.output
+        runs[bool(flag)] = ff.read_features(out, "a.png")["keypoints"]
+    refined, integer = runs[False], runs[True]
+    assert np.array_equal(integer, np.round(integer))  # the peak's pixel centre
+    assert (refined != np.round(refined)).mean() > 0.5  # most keypoints move off the pixel centre
+    assert np.abs(refined - np.round(refined)).max() <= 1.0 and len(refined) == len(integer)

@@ -39,7 +39,9 @@ class Method:
                        nms_radius: int = 4) -> FeatureConfig:
         # Only SEKD reads the SEKD settings; leaving them at their defaults for other features
         # keeps those features' cache files valid when a SEKD setting changes.
-        sekd = SEKDConfig(max_keypoints=max_keypoints, threshold=threshold, nms_radius=nms_radius, precision=precision)
+        # Integer keypoints, as the SEKD paper's protocol and every figure in docs/benchmarks.md.
+        sekd = SEKDConfig(max_keypoints=max_keypoints, threshold=threshold, nms_radius=nms_radius, precision=precision,
+                          subpixel=False)
         return FeatureConfig(feature=self.feature, max_keypoints=max_keypoints, weights=self.weights,
                              sekd=sekd if self.feature == "sekd" else SEKDConfig(max_keypoints=max_keypoints))
 

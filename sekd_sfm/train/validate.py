@@ -92,7 +92,7 @@ def evaluate(net: nn.Module, folders: list[Path], long_side: int, max_keypoints:
     """Validation metrics of ``net``: mma3, mma_avg (MMA@1..10), ha3, ha_avg (HA@1..10), per-subset mma3,
     and ``desc_cos``, the descriptors' mean pairwise cosine (collapse shows as a value near 1)."""
     config = SEKDConfig(max_keypoints=max_keypoints, threshold=threshold, nms_radius=nms_radius,
-                        precision="fp32", device=device.type)
+                        precision="fp32", device=device.type, subpixel=False)  # comparable with every past run
     extractor = SEKDExtractor(plain_copy(net), config)
     rows, cosines = [], []
     for folder in folders:
