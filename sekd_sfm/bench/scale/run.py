@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import SekdError
+from ...fsio import write_atomic
 from ..metrics import pose_auc
 from .measure import Measurement, run_measured
 from .scene import SceneConfig, generate_scene, read_covisibility, read_scene
@@ -345,9 +346,7 @@ def run_scale_benchmark(output_dir: str | Path, config: ScaleConfig, reconstruct
         from ...runtime import package_versions
 
         result["settings"] = {**asdict(replace(config, sizes=tuple(config.sizes))), "versions": package_versions()}
-        tmp = done.with_name("result.json.tmp")
-        tmp.write_text(json.dumps(result, indent=1, default=str))
-        tmp.replace(done)
+        write_atomic(done, json.dumps(result, indent=1, default=str))
     return write_report(out)
 
 
@@ -385,8 +384,8 @@ def write_report(out: Path) -> Path:
               "exponents": {p: exponents(results, p) for p in ("ours", "pycolmap")},
               "cpu_exponents": {p: exponents(results, p, "cpu_s") for p in ("ours", "pycolmap")}}
     path = out / "results.json"
-    path.write_text(json.dumps(report, indent=1, default=str))
-    (out / "results.md").write_text(scale_markdown(report))
+    write_atomic(path, json.dumps(report, indent=1, default=str))  # two runs may finish sizes at once
+    write_atomic(out / "results.md", scale_markdown(report))
     if results:
         plot_scale(report, out / "scale.png")
     return path
