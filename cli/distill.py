@@ -38,7 +38,7 @@ def distill(output, teacher, photos, steps, batch_size, crop, lr, channels, val_
     \b
     Teacher and student see the same augmented crops (random perspective warps, scale,
     rotation, brightness/contrast/gamma, blur, noise) of the training photos; the student
-    learns the teacher's keypoint probabilities (peak-weighted cross-entropy) and its
+    learns the teacher's keypoint logits (peak-weighted squared error) and its
     descriptors (1 - cosine at every 1/4 cell). The last 16 photos are held out: every
     --val-every steps the log shows the share of the teacher's keypoints the student finds
     within 2 px and the median descriptor cosine at them. The state is saved every 3 minutes;
