@@ -73,6 +73,7 @@ def run(request: dict) -> list:
 
 def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides: on Ctrl-C it kills this process
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})  # inherited blocked from the parent's start
     request = pickle.load(sys.stdin.buffer)
     _die_with_parent(int(request["parent_pid"]))
     models = run(request)

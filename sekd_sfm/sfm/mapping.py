@@ -15,13 +15,16 @@ Output layout under the output folder::
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import select
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -165,10 +168,13 @@ def _seed(options) -> int:
 def _run_child(request: dict, scratch: Path, bar: _MapperProgress) -> None:
     """Start the worker, forward its events to ``bar``; kill it on Ctrl-C; SekdError if it fails."""
     stderr_path = scratch / "stderr.txt"
-    with open(stderr_path, "wb") as stderr:
-        child = subprocess.Popen(WORKER_COMMAND, stdin=subprocess.PIPE,
-                                 stdout=subprocess.PIPE, stderr=stderr, cwd=os.getcwd())
+    child = None
     try:
+        # Ctrl-C / SIGTERM are held back while the child starts and delivered once it is
+        # known, so a signal during the start cannot leave a mapper running with no owner.
+        with _signals_held(), open(stderr_path, "wb") as stderr:
+            child = subprocess.Popen(WORKER_COMMAND, stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=stderr, cwd=os.getcwd())
         try:
             child.stdin.write(pickle.dumps(request))
             child.stdin.close()
@@ -192,9 +198,24 @@ def _run_child(request: dict, scratch: Path, bar: _MapperProgress) -> None:
                         "if killed by signal 9)")
 
 
-def _kill(child: subprocess.Popen) -> None:
-    child.kill()
-    child.wait()
+def _kill(child: subprocess.Popen | None) -> None:
+    if child is not None:
+        child.kill()
+        child.wait()
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Block SIGINT and SIGTERM in this thread for the block; pending ones are delivered at its end."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _follow(child: subprocess.Popen, bar: _MapperProgress) -> None:
