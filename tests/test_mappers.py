@@ -107,6 +107,9 @@ def test_mapper_help_lists_the_options_of_the_chosen_type(mapper_type, expected)
 
 # ----------------------------------------------------------------------------- Ctrl-C
 
+# Start from a shell's signal state, whatever the test process passed on (a mask, an ignored SIGINT).
+CLEAN_SIGNALS = ("import signal; signal.pthread_sigmask(signal.SIG_SETMASK, set()); "
+                 "signal.signal(signal.SIGINT, signal.default_int_handler)\n")
 HARNESS = textwrap.dedent("""
     import sys, time
     from sekd_sfm.errors import Interrupted
@@ -125,7 +128,7 @@ def test_ctrl_c_kills_the_mapper_at_once_and_leaves_nothing(tmp_path, signum):
     database = tmp_path / "database.db"
     pycolmap.Database.open(str(database)).close()
     # The CLI's SIGTERM policy (raise KeyboardInterrupt), as `sekd` installs it.
-    script = "from sekd_sfm.runtime import stop_cleanly_on_sigterm; stop_cleanly_on_sigterm()\n" + HARNESS
+    script = CLEAN_SIGNALS + "from sekd_sfm.runtime import stop_cleanly_on_sigterm; stop_cleanly_on_sigterm()\n" + HARNESS
     child = subprocess.Popen([sys.executable, "-c", script, str(database), str(tmp_path)],
                              stdout=subprocess.PIPE, text=True)
     deadline = time.time() + 60
@@ -146,13 +149,15 @@ def test_ctrl_c_kills_the_mapper_at_once_and_leaves_nothing(tmp_path, signum):
 
 
 def _worker_pids(parent: int) -> list[int]:
-    """PIDs of the children of ``parent`` (from /proc)."""
+    """PIDs of the fake mapper workers (``time.sleep(60)``) among the children of ``parent`` (from /proc)."""
     pids = []
     for entry in os.listdir("/proc"):
         if entry.isdigit():
             try:
                 with open(f"/proc/{entry}/stat") as f:
-                    if int(f.read().rsplit(")", 1)[1].split()[1]) == parent:
+                    is_child = int(f.read().rsplit(")", 1)[1].split()[1]) == parent
+                with open(f"/proc/{entry}/cmdline", "rb") as f:
+                    if is_child and b"time.sleep(60)" in f.read():
                         pids.append(int(entry))
             except (OSError, IndexError, ValueError):
                 continue
