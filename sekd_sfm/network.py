@@ -37,8 +37,11 @@ class ResBlock(nn.Module):
         return self.convb(x) + shortcut
 
 
-def _stage(c_in: int, c_out: int, stride: int) -> nn.Sequential:
-    return nn.Sequential(ResBlock(c_in, c_out, stride), ResBlock(c_out, c_out), ResBlock(c_out, c_out))
+def _stage(c_in: int, c_out: int, stride: int, blocks: int = 3) -> nn.Module:
+    """``blocks`` residual blocks, the first one changing resolution/channels; 0 blocks = identity (stride 1 only)."""
+    if blocks == 0:
+        return nn.Identity()
+    return nn.Sequential(ResBlock(c_in, c_out, stride), *(ResBlock(c_out, c_out) for _ in range(blocks - 1)))
 
 
 def _upsample(c_in: int, c_out: int) -> nn.Sequential:
@@ -50,7 +53,28 @@ def _upsample(c_in: int, c_out: int) -> nn.Sequential:
     )
 
 
-class SEKDNet(nn.Module):
+class SEKDForward(nn.Module):
+    """The forward pass shared by SEKD's networks: an encoder at 1, 1/2, 1/4 resolution
+    (``conv0``, ``resblock0..2``), a decoder back to full resolution with skip connections
+    (``deconv0``, ``deconv1``), a 2-class ``detector`` and a ``descriptor`` head at 1/4 resolution.
+    Subclasses build those modules."""
+
+    def forward_train(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Return ``(logits B x 2 x H x W, raw descriptors B x 128 x H/4 x W/4, feature0 B x C0 x H x W)``."""
+        f0 = self.resblock0(self.conv0(image))
+        f1 = self.resblock1(f0)
+        f2 = self.resblock2(f1)
+        g1 = f1 + self.deconv0(f2)
+        feature0 = f0 + self.deconv1(g1)
+        return self.detector(feature0), self.descriptor(f2), feature0
+
+    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Return ``(keypoint probability B x 1 x H x W, raw descriptors B x 128 x H/4 x W/4)``."""
+        logits, descriptors, _ = self.forward_train(image)
+        return F.softmax(logits, dim=1)[:, 1:2], descriptors
+
+
+class SEKDNet(SEKDForward):
     """SEKD detector + descriptor network (661,762 parameters).
 
     Input: ``B x 1 x H x W`` grayscale in [0, 1] with H, W multiples of 4.
@@ -66,20 +90,6 @@ class SEKDNet(nn.Module):
         self.deconv1 = _upsample(64, 32)
         self.detector = nn.Conv2d(32, 2, 3, padding=1, bias=True)
         self.descriptor = ResBlock(128, 128)
-
-    def forward_train(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Return ``(logits B x 2 x H x W, raw descriptors B x 128 x H/4 x W/4, feature0 B x 32 x H x W)``."""
-        f0 = self.resblock0(self.conv0(image))
-        f1 = self.resblock1(f0)
-        f2 = self.resblock2(f1)
-        g1 = f1 + self.deconv0(f2)
-        feature0 = f0 + self.deconv1(g1)
-        return self.detector(feature0), self.descriptor(f2), feature0
-
-    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Return ``(keypoint probability B x 1 x H x W, raw descriptors B x 128 x H/4 x W/4)``."""
-        logits, descriptors, _ = self.forward_train(image)
-        return F.softmax(logits, dim=1)[:, 1:2], descriptors
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -13,11 +13,9 @@ the inference fast path (:func:`~sekd_sfm.network.use_fast_deconv`) applies unch
 """
 from __future__ import annotations
 
-import torch
-import torch.nn.functional as F
 from torch import nn
 
-from .network import DESCRIPTOR_DIM, ResBlock, _upsample
+from .network import DESCRIPTOR_DIM, ResBlock, SEKDForward, _stage, _upsample
 
 #: The name recorded in a checkpoint's ``'sekd_sfm': {'architecture': ...}`` entry.
 ARCHITECTURE = "sekd-lite"
@@ -35,14 +33,7 @@ class DilatedResBlock(ResBlock):
         self.convb[2] = nn.Conv2d(channels, channels, 3, padding=dilation, dilation=dilation, bias=True)
 
 
-def _stage(c_in: int, c_out: int, stride: int, blocks: int) -> nn.Module:
-    """``blocks`` residual blocks, the first one changing resolution/channels; 0 blocks = identity (stride 1 only)."""
-    if blocks == 0:
-        return nn.Identity()
-    return nn.Sequential(ResBlock(c_in, c_out, stride), *(ResBlock(c_out, c_out) for _ in range(blocks - 1)))
-
-
-class SEKDLiteNet(nn.Module):
+class SEKDLiteNet(SEKDForward):
     """Slim SEKD detector + descriptor network.
 
     Input: ``B x 1 x H x W`` grayscale in [0, 1] with H, W multiples of 4. Outputs as SEKDNet:
@@ -85,20 +76,6 @@ class SEKDLiteNet(nn.Module):
         # It also widens c2 to the 128 descriptor dimensions.
         self.descriptor = nn.Sequential(nn.BatchNorm2d(c2), nn.ReLU(inplace=False),
                                         nn.Conv2d(c2, DESCRIPTOR_DIM, 1, bias=True))
-
-    def forward_train(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Return ``(logits B x 2 x H x W, raw descriptors B x 128 x H/4 x W/4, feature0 B x c0 x H x W)``."""
-        f0 = self.resblock0(self.conv0(image))
-        f1 = self.resblock1(f0)
-        f2 = self.resblock2(f1)
-        g1 = f1 + self.deconv0(f2)
-        feature0 = f0 + self.deconv1(g1)
-        return self.detector(feature0), self.descriptor(f2), feature0
-
-    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Return ``(keypoint probability B x 1 x H x W, raw descriptors B x 128 x H/4 x W/4)``."""
-        logits, descriptors, _ = self.forward_train(image)
-        return F.softmax(logits, dim=1)[:, 1:2], descriptors
 
 
 def build_lite(config: dict | None = None) -> SEKDLiteNet:
