@@ -175,8 +175,7 @@ def format_pairs(pairs: list[Pair]) -> str:
 def write_pairs(pairs: list[Pair], path: str | Path) -> Path:
     """Write a pairs file atomically (temporary file, fsync, rename). Returns ``path``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
+    try:  # write_atomic creates the folder too
         return write_atomic(path, format_pairs(pairs))
     except OSError as exc:
         raise SekdError(f"{path}: cannot write pairs file ({exc}); free space or choose another output") from exc

@@ -39,6 +39,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..errors import SekdError
+from ..fsio import atomic_output, write_atomic
 from ..inference import nms_keypoints, sample_descriptors
 from ..locking import exclusive_lock
 from ..network import SEKDNet, use_fast_deconv
@@ -274,9 +275,7 @@ def _teacher_path(config: DistillConfig) -> Path:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    tmp.replace(path)
+    write_atomic(path, json.dumps(data, indent=2) + "\n")
 
 
 def _save_state(folder: Path, student: SEKDLiteNet, state: dict, meta: dict) -> None:
@@ -288,9 +287,8 @@ def _save_state(folder: Path, student: SEKDLiteNet, state: dict, meta: dict) -> 
     net = copy.deepcopy(student)
     net.load_state_dict(state["student"])
     save_checkpoint(net, folder / LAST_NAME, {**meta, "step": state["step"]})
-    tmp = folder / (STATE_NAME + ".tmp")
-    torch.save(state, tmp)
-    tmp.replace(folder / STATE_NAME)
+    with atomic_output(folder / STATE_NAME) as tmp:
+        torch.save(state, tmp)
 
 
 def _snapshot(student: SEKDLiteNet, optimizer: torch.optim.Optimizer, step: int) -> dict:
@@ -305,9 +303,7 @@ def _trim_metrics(folder: Path, step: int) -> None:
     if not path.is_file():
         return
     kept = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line).get("step", 0) <= step]
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("".join(line + "\n" for line in kept))
-    tmp.replace(path)
+    write_atomic(path, "".join(line + "\n" for line in kept))
 
 
 def _log(folder: Path, record: dict) -> None:

@@ -612,7 +612,7 @@ def generate_scene(output_dir: str | Path, config: SceneConfig, progress: bool =
     (out / "gt_dense_cameras").mkdir(exist_ok=True)
     visible, views = _render_all(out, names, distractor_slots, cameras, faces, textures, pool, config, progress)
     scene_names = [n for i, n in enumerate(names) if i not in distractor_slots]
-    write_covisibility(out / "covisibility.txt", scene_names, visible, len(np.concatenate([f.samples() for f in faces])),
+    write_covisibility(out / "covisibility.txt", scene_names, visible, sum(len(f.samples()) for f in faces),
                        cameras, views)
     record = {"format": FORMAT, "config": _config_record(config), "faces": len(faces),
               "block_m": [2 * block.hx, 2 * block.hy], "path_perimeter_m": block.perimeter,
