@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from ..network import BlockDiagonalConvTranspose2d, SEKDNet, use_fast_deconv  # noqa: F401 - re-exported
-from ..weights import load_model, save_checkpoint
+from ..weights import FULL_ARCHITECTURE, load_model, save_checkpoint
 
 
 def new_network(seed: int) -> SEKDNet:
@@ -28,7 +28,7 @@ def new_network(seed: int) -> SEKDNet:
 def initial_network(weights: str, seed: int) -> SEKDNet:
     """The starting model: a checkpoint when ``weights`` is set, else a seeded random network."""
     if weights:
-        return load_model(Path(weights).expanduser(), architecture="sekd")[0]  # training builds SEKDNet: refuse a Lite checkpoint
+        return load_model(Path(weights).expanduser(), architecture=FULL_ARCHITECTURE)[0]  # training builds SEKDNet: refuse a Lite checkpoint
     return new_network(seed)
 
 
