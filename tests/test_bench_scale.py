@@ -17,7 +17,11 @@ from sekd_sfm.bench.scale.scene import (
     SceneConfig,
     SurfaceView,
     Textures,
+    MIN_TEXTURED,
+    apparent_size,
     assign_textures,
+    texture_cells,
+    textured_fraction,
     covisibility_counts,
     generate_scene,
     layout_scene,
@@ -147,6 +151,57 @@ def test_assign_textures_gives_every_face_its_own_region():
         assert x // tw == (x + w - 1) // tw and y // th == (y + h - 1) // th  # inside one tile
         assert abs(w / h - f.width / f.height) < 0.02 * f.width / f.height  # the face's own aspect
     assert assign_textures([], sizes, np.random.default_rng(0)) == []
+
+
+def test_assign_textures_cuts_only_as_many_photos_finer_as_needed():
+    # 5 faces, 2 photos x 2 mirrors = 4 whole sheets: one sheet is cut into 2 x 2, the other three stay whole.
+    sizes = [(640, 480), (640, 480)]
+    faces = [_wall(0.0, 0.0, 5.0, 4.0, 3.0) for _ in range(5)]
+    priority = np.array([1.0, 5.0, 2.0, 4.0, 3.0])
+    assign_textures(faces, sizes, np.random.default_rng(1), priority=priority)
+    whole = [i for i, f in enumerate(faces) if f.crop[2] > 320]
+    assert sorted(whole) == [1, 3, 4]  # the three largest priorities take the whole photos
+    assert len({(f.texture, f.mirror) for f in faces}) == 4
+
+
+def test_texture_cells_and_textured_fraction_hand_computed():
+    photo = np.zeros((32, 64), np.uint8)
+    photo[:, 32:] = np.tile(np.array([0, 0, 40, 40], np.uint8), (32, 8))  # right half: 2-texel stripes
+    cells = texture_cells(photo)
+    assert cells.shape == (2, 4)
+    assert np.all(cells[:, :2] == 0)  # flat: no gradient
+    # Sobel / 8 of a 40-level step = 20 grey levels at every stripe texel but one per cell: the first
+    # column (0 on both sides) and the last (mirrored border: 40 on both sides) -> 15/16 x 20 = 18.75.
+    assert np.allclose(cells[:, 2:], 18.75)
+    assert textured_fraction(cells, (0, 0, 64, 32)) == 0.5
+    assert textured_fraction(cells, (32, 0, 32, 32)) == 1.0
+    assert textured_fraction(cells, (0, 0, 8, 8)) == 1.0  # under one cell: not judged
+
+
+def test_assign_textures_skips_blank_regions():
+    # Photo 0 is blank on its left half: no face may take a crop mostly inside it.
+    sizes = [(64, 32)]
+    blank_left = texture_cells(np.hstack([np.zeros((32, 32), np.uint8),
+                                          np.tile(np.array([0, 0, 40, 40], np.uint8), (32, 8))]))
+    faces = [_wall(0.0, 0.0, 5.0, 1.0, 1.0) for _ in range(2)]  # square faces: a 32 x 32 crop at most
+    assign_textures(faces, sizes, np.random.default_rng(0), cells=[blank_left])
+    for f in faces:
+        assert textured_fraction(blank_left, f.crop) >= MIN_TEXTURED
+
+
+def test_apparent_size_ranks_near_facades_above_grazing_and_far_faces():
+    # Walls face the camera at the origin (normal -z). By hand: 10 m x 6 m seen square-on at 5 m and
+    # 5.83 m (centre (0, 3, 5)): 60 * (5 / 5.83) / 34 = 1.51 sr; at 40 m: 60 * 0.997 / 1609 = 0.037.
+    centers = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -100.0]])
+    near, far = _wall(-5.0, 0.0, 5.0, 10.0, 6.0), _wall(-5.0, 0.0, 40.0, 10.0, 6.0)
+    # Ground 1.6 m below the camera (y is down; normal v x u = -y, up), 5-11 m ahead: centre (0, 1.6, 8),
+    # cos = 1.6 / 8.16, 60 * 0.196 / 66.56 = 0.177 sr.
+    grazing = Face(np.array([-5.0, 1.6, 11.0]), np.array([1.0, 0, 0]), np.array([0, 0, -1.0]), 10.0, 6.0, 0,
+                   (0, 0, 40, 20), (1.0, 1.0, 1.0))
+    sizes = apparent_size([near, far, grazing], centers)
+    assert sizes[0] == pytest.approx(60 * (5 / math.sqrt(34)) / 34, rel=1e-6)
+    assert sizes[1] == pytest.approx(60 * (40 / math.sqrt(1609)) / 1609, rel=1e-6)
+    assert sizes[2] == pytest.approx(60 * (1.6 / math.sqrt(66.56)) / 66.56, rel=1e-6)
 
 
 @pytest.fixture(scope="module")

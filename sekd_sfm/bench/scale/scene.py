@@ -4,8 +4,10 @@ Layout (world units are metres, z up): a rectangular block, twice as long as wid
 perimeter grows with the number of photos. Along each side stand box buildings (6-14 m
 wide, 6-18 m high, set back 0-1.5 m from the street line, so their side walls show), with
 taller towers behind them on large blocks, and a textured pavement strip in front. Every
-planar face carries its own region of a photo (``assign_textures``: disjoint tiles of the
-photos, each also usable mirrored, never one region twice while the photos last) with its
+planar face carries its own region of a photo (``assign_textures``: tiles of the photos,
+each also usable mirrored, never one region twice while the photos last; near facades take
+whole photos first, pavement and far towers the finer tiles; every crop at least 70 %
+textured, so no photo of the walk sees only sky or a black screen) with its
 own colour gain, so no two faces share content: repeated content would hand retrieval and
 matching look-alikes that no real street has this often. The camera walks once around the block (one photo every ``spacing`` m, 6-9 m from the
 facades, 1.5-1.7 m high), looking at the buildings with small yaw / pitch / roll jitter,
@@ -57,7 +59,7 @@ from tqdm import tqdm
 from ...errors import SekdError
 
 logger = logging.getLogger("sekd")
-FORMAT = "sekd-scale-scene/2"
+FORMAT = "sekd-scale-scene/3"
 NEAR = 0.1          # near clipping plane (m)
 MAX_RANGE = 90.0    # faces farther than this are not drawn (m); they would be a few pixels
 DISTRACTOR_POOL = 32  # photos set aside as distractors, never used as textures
@@ -238,31 +240,124 @@ def build_faces(block: Block, rng: np.random.Generator, textures: int, sizes) ->
     return faces
 
 
-def assign_textures(faces: list[Face], sizes: list[tuple[int, int]], rng: np.random.Generator) -> list[Face]:
+#: Texture cells (16 x 16 texels) count as textured when their mean gradient magnitude reaches this
+#: many grey levels per texel: sky, blank walls and black screens stay below it.
+TEXTURED_GRADIENT = 2.0
+#: Smallest fraction of textured cells in a face's crop. Crops below it (half sky, a dark
+#: screen) leave whole photos without features when the face fills the view, which breaks the
+#: camera chain for a reason no benchmark of scale should measure.
+MIN_TEXTURED = 0.7
+TEXTURE_CELL = 16
+
+
+def texture_cells(photo: np.ndarray, cell: int = TEXTURE_CELL) -> np.ndarray:
+    """Mean gradient magnitude (grey levels per texel) of each ``cell`` x ``cell`` block of a BGR photo.
+
+    Returns an (H // cell, W // cell) float32 array.
+    """
+    grey = cv2.cvtColor(photo, cv2.COLOR_BGR2GRAY) if photo.ndim == 3 else photo
+    grey = grey.astype(np.float32)
+    # Sobel 3x3 sums 8 neighbour differences: divide by 8 for grey levels per texel.
+    magnitude = np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3)) / 8
+    h, w = magnitude.shape[0] // cell * cell, magnitude.shape[1] // cell * cell
+    return magnitude[:h, :w].reshape(h // cell, cell, w // cell, cell).mean(axis=(1, 3))
+
+
+def textured_fraction(cells: np.ndarray, crop: tuple[int, int, int, int], cell: int = TEXTURE_CELL) -> float:
+    """Fraction of the cells inside ``crop`` (x, y, w, h in texels) that are textured (1.0 for crops under one cell)."""
+    x, y, w, h = crop
+    block = cells[y // cell:(y + h) // cell, x // cell:(x + w) // cell]
+    return float((block >= TEXTURED_GRADIENT).mean()) if block.size else 1.0
+
+
+def _tile_slots(num_faces: int, num_photos: int, rng: np.random.Generator, slack: float) -> list[tuple[int, int, int, int, bool]]:
+    """(photo, grid, row, col, mirror) tiles, largest first, enough for ``slack`` x ``num_faces``.
+
+    Every (photo, mirror) "sheet" is cut into a g x g grid; the coarsest g that gives enough
+    tiles, with only as many sheets cut one level finer (g + 1) as needed: textures stay as
+    large (as sharp) as the pool allows, instead of every sheet dropping to the finer grid.
+    """
+    sheets = [(p, m) for p in range(num_photos) for m in (False, True)]
+    order = rng.permutation(len(sheets))
+    need = math.ceil(num_faces * slack)
+    g = 1
+    while g < 16 and len(sheets) * (g + 1) ** 2 < need:
+        g += 1  # at 16 x 16 tiles of a few dozen texels carry no features: stop refining
+    finer = 0 if len(sheets) * g * g >= need or g == 16 else \
+        min(len(sheets), math.ceil((need - len(sheets) * g * g) / ((g + 1) ** 2 - g * g)))
+    coarse, fine = [], []
+    for rank, index in enumerate(order):
+        photo, mirror = sheets[index]
+        grid = g + 1 if rank < finer else g
+        tiles = [(photo, grid, r, c, mirror) for r in range(grid) for c in range(grid)]
+        (fine if grid > g else coarse).extend(tiles)
+    shuffle = rng.permutation
+    return [coarse[i] for i in shuffle(len(coarse))] + [fine[i] for i in shuffle(len(fine))]
+
+
+def apparent_size(faces: list[Face], centers: np.ndarray) -> np.ndarray:
+    """Per face, its largest apparent size from the camera centres (N x 3): area x cos(view angle) / distance^2.
+
+    About the solid angle (sr) the face covers from its best viewpoint: near facades rank
+    first; pavement seen at a grazing angle and far towers need fewer texels per metre.
+    """
+    sizes = np.zeros(len(faces))
+    for i, face in enumerate(faces):
+        middle = face.origin + (face.u * face.width + face.v * face.height) / 2
+        rays = centers - middle
+        distance = np.maximum(np.linalg.norm(rays, axis=1), 1.0)
+        cos = np.clip(rays @ face.normal / distance, 0.0, 1.0)
+        sizes[i] = float(np.max(face.width * face.height * cos / distance**2))
+    return sizes
+
+
+def assign_textures(faces: list[Face], sizes: list[tuple[int, int]], rng: np.random.Generator,
+                    cells: list[np.ndarray] | None = None, tries: int = 8,
+                    priority: np.ndarray | None = None) -> list[Face]:
     """Give every face its own texture region, in place; returns ``faces``.
 
-    Each photo (``sizes``: width, height) is cut into a g x g grid of tiles, each tile usable
-    straight or mirrored; g is the smallest grid with at least one (tile, mirror) slot per face.
-    Slots are dealt in a random order without replacement (reused only past 16 x 16 tiles);
-    a face's crop is the largest region of its own aspect inside its tile, scaled 0.8-1.0.
+    Photos (``sizes``: width, height), each usable straight or mirrored, are cut into tiles
+    (``_tile_slots``); faces in decreasing ``priority`` (default: area; ``apparent_size``
+    in a scene) take the largest tiles first, each tile used once while
+    they last (then reused, with a warning). A face's crop is the largest region of its own
+    aspect inside its tile, scaled 0.8-1.0. With ``cells`` (``texture_cells`` of each photo)
+    a crop must be at least ``MIN_TEXTURED`` textured: ``tries`` placements, then the next tile.
     """
     if not faces:
         return faces
-    g = max(1, math.ceil(math.sqrt(len(faces) / (2 * len(sizes)))))
-    g = min(g, 16)  # tiles of a few dozen pixels would carry no features
-    slots = [(p, r, c, m) for p in range(len(sizes)) for r in range(g) for c in range(g) for m in (False, True)]
-    order = rng.permutation(len(slots))
-    for i, face in enumerate(faces):
-        photo, row, col, mirror = slots[order[i % len(slots)]]
-        tw, th = sizes[photo][0] // g, sizes[photo][1] // g
-        aspect = face.width / face.height
-        cw, ch = (round(th * aspect), th) if tw / th > aspect else (tw, round(tw / aspect))
-        scale = rng.uniform(0.8, 1.0)
-        cw, ch = max(8, min(tw, round(cw * scale))), max(8, min(th, round(ch * scale)))
-        x = col * tw + int(rng.integers(0, tw - cw + 1))
-        y = row * th + int(rng.integers(0, th - ch + 1))
-        face.texture, face.crop, face.mirror = photo, (x, y, cw, ch), mirror
+    slots = _tile_slots(len(faces), len(sizes), rng, slack=1.0 if cells is None else 1.3)
+    if priority is None:
+        priority = np.array([face.width * face.height for face in faces])
+    by_size = np.argsort(-np.asarray(priority), kind="stable")
+    next_slot = 0
+    for i in by_size:
+        face = faces[i]
+        while True:
+            if next_slot >= len(slots):
+                logger.warning("scene: %d faces for %d texture tiles; tiles are reused", len(faces), len(slots))
+                next_slot, cells = 0, None  # reuse from the start, textured or not
+            photo, grid, row, col, mirror = slots[next_slot]
+            next_slot += 1
+            crop = _crop_in_tile(face, sizes[photo], grid, row, col, rng, None if cells is None else cells[photo], tries)
+            if crop is not None:
+                face.texture, face.crop, face.mirror = photo, crop, mirror
+                break
     return faces
+
+
+def _crop_in_tile(face: Face, size: tuple[int, int], grid: int, row: int, col: int, rng: np.random.Generator,
+                  cells: np.ndarray | None, tries: int) -> tuple[int, int, int, int] | None:
+    """A crop of the face's aspect inside tile (row, col) of a ``grid`` x ``grid`` photo, textured enough, or None."""
+    tw, th = size[0] // grid, size[1] // grid
+    aspect = face.width / face.height
+    cw0, ch0 = (round(th * aspect), th) if tw / th > aspect else (tw, round(tw / aspect))
+    for _ in range(tries if cells is not None else 1):
+        scale = rng.uniform(0.8, 1.0)
+        cw, ch = max(8, min(tw, round(cw0 * scale))), max(8, min(th, round(ch0 * scale)))
+        crop = (col * tw + int(rng.integers(0, tw - cw + 1)), row * th + int(rng.integers(0, th - ch + 1)), cw, ch)
+        if cells is None or textured_fraction(cells, crop) >= MIN_TEXTURED:
+            return crop
+    return None
 
 
 def _split(length: float, rng, low: float, high: float) -> list[float]:
@@ -560,6 +655,20 @@ class Layout:
     pool: list[Path]                # photos set aside as distractors
     names: list[str]                # every photo's name, scene photos and distractors
     distractor_slots: set[int]      # positions of the distractors in ``names``
+    apparent: np.ndarray            # per face, ``apparent_size`` (sr): how much of a view it can fill
+
+    def texture_density(self) -> dict:
+        """Texels per metre of the faces' textures, quantiles weighted by apparent size, and the
+        pixels per metre of a photo at the walk's mean distance: texture sharper than the photos
+        where texels >= pixels."""
+        density = np.array([face.crop[2] / face.width for face in self.faces])
+        order = np.argsort(density)
+        weight = np.cumsum(self.apparent[order]) / max(float(self.apparent.sum()), 1e-12)
+        quantile = {q: float(density[order][min(np.searchsorted(weight, q), len(order) - 1)]) for q in (0.1, 0.5, 0.9)}
+        camera = self.cameras[0]
+        return {"texels_per_m_p10": round(quantile[0.1], 1), "texels_per_m_p50": round(quantile[0.5], 1),
+                "texels_per_m_p90": round(quantile[0.9], 1),
+                "pixels_per_m_at_walk_distance": round(float(camera.K[0, 0]) / self.block.distance, 1)}
 
 
 def layout_scene(config: SceneConfig) -> Layout:
@@ -579,12 +688,15 @@ def layout_scene(config: SceneConfig) -> Layout:
     if num_scene < 2:
         raise SekdError(f"{config.num_images} images leave {num_scene} scene photos after {num_distractors} distractors")
     block = Block(max(MIN_PERIMETER, num_scene * config.spacing), config.distance)
-    faces = assign_textures(build_faces(block, rng, len(texture_paths), textures.sizes), textures.sizes,
-                            np.random.default_rng([config.seed, 3]))
     cameras = make_cameras(block, config, num_scene)
+    cells = [texture_cells(textures.level(i, 0)) for i in range(len(texture_paths))]
+    faces = build_faces(block, rng, len(texture_paths), textures.sizes)
+    centers = np.array([camera.center for camera in cameras[::4]])
+    apparent = apparent_size(faces, centers)
+    assign_textures(faces, textures.sizes, np.random.default_rng([config.seed, 3]), cells, priority=apparent)
     distractor_slots = set(rng.choice(config.num_images, num_distractors, replace=False).tolist())
     names = [f"{i:05d}.jpg" for i in range(config.num_images)]
-    return Layout(block, faces, cameras, textures, pool, names, distractor_slots)
+    return Layout(block, faces, cameras, textures, pool, names, distractor_slots, apparent)
 
 
 def generate_scene(output_dir: str | Path, config: SceneConfig, progress: bool = True) -> Path:
@@ -600,7 +712,7 @@ def generate_scene(output_dir: str | Path, config: SceneConfig, progress: bool =
             previous = json.loads(done.read_text())
         except (OSError, ValueError) as exc:
             raise SekdError(f"{done}: unreadable ({exc}); delete the folder {out} to generate the scene again") from None
-        if previous.get("config") == _config_record(config):
+        if previous.get("config") == _config_record(config) and previous.get("format") == FORMAT:
             logger.info("%s: scene already generated", out)
             return done
         raise SekdError(f"{out}: holds a scene of another configuration; choose another folder or delete it")
@@ -615,6 +727,7 @@ def generate_scene(output_dir: str | Path, config: SceneConfig, progress: bool =
     write_covisibility(out / "covisibility.txt", scene_names, visible, sum(len(f.samples()) for f in faces),
                        cameras, views)
     record = {"format": FORMAT, "config": _config_record(config), "faces": len(faces),
+              "texture_density": layout.texture_density(),
               "block_m": [2 * block.hx, 2 * block.hy], "path_perimeter_m": block.perimeter,
               "pixel_convention": "OpenCV (integer = pixel centre); COLMAP principal point = ours + 0.5",
               "distractors": sorted(names[i] for i in distractor_slots),
