@@ -5,7 +5,7 @@ import functools
 
 import click
 
-from sekd_sfm.cluster import EXECUTORS, RayOptions
+from sekd_sfm.cluster import EXECUTORS, MERGES, RayOptions
 from sekd_sfm.features import FEATURE_TYPES
 from sekd_sfm.images import DEFAULT_MAX_PIXELS
 from sekd_sfm.runtime import DEVICES, PRECISIONS
@@ -101,9 +101,9 @@ def executor_options(f):
     """--executor, --ray-address, --threads-per-worker, --gpus-per-worker, passed on as ``executor`` and ``ray_options``."""
 
     @functools.wraps(f)
-    def command(*args, ray_address, threads_per_worker, gpus_per_worker, **kwargs):
+    def command(*args, ray_address, threads_per_worker, gpus_per_worker, ray_merge, **kwargs):
         kwargs["ray_options"] = RayOptions(address=ray_address, threads_per_worker=threads_per_worker,
-                                           gpus_per_worker=gpus_per_worker)
+                                           gpus_per_worker=gpus_per_worker, merge=ray_merge)
         return f(*args, **kwargs)
 
     options = [
@@ -117,6 +117,11 @@ def executor_options(f):
                      help="ray: CPU threads (Ray CPUs) per worker; one worker per that many CPUs of the cluster."),
         click.option("--gpus-per-worker", type=click.FloatRange(min=0), default=0, show_default=True,
                      help="ray: GPUs per worker (0 = CPU workers; 0.5 = two workers share a GPU)."),
+        click.option("--ray-merge", type=click.Choice(MERGES), default="copy", show_default=True,
+                     help="ray, extraction: copy = the arrays are copied into one self-contained features.h5 "
+                          "(the driver copies at disk speed, ~300-440 images/s); virtual = workers write shard "
+                          "files in features.h5.shards/ that features.h5 references (thousands of images/s: for "
+                          "clusters of more than ~64 workers; keep the folder beside the file)."),
     ]
     for option in reversed(options):
         command = option(command)

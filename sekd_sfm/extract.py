@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import cluster
+from . import cluster, shards
 from . import featurefile as ff
 from .errors import Interrupted, SekdError
 from .features import FeatureConfig, build_extractor
@@ -127,7 +127,7 @@ def _extract(image_dir: Path, output: Path, config: FeatureConfig, overwrite: bo
     attrs = _file_attrs(config, described, extractor, model_info)
     parts = ff.PartStore(output, max_items=64, max_seconds=checkpoint_seconds)
     ff.prepare_output(output, attrs, parts, overwrite, compare=("config",))
-    done = set(ff.list_keys(output)) | parts.keys()
+    done = set(ff.list_keys(output)) | parts.keys() | shards.all_keys(output)
     todo = [k for k in keys if k not in done]
     logger.info("%s: %d images, %d already done, %d to extract", image_dir, len(keys), len(keys) - len(todo), len(todo))
     failed = (_run(extractor, image_dir, todo, config, parts, output, strict, progress) if executor == "local" else

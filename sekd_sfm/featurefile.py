@@ -49,6 +49,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from . import shards
 from .errors import Interrupted, SekdError
 from .fsio import fsync_replace, temp_name
 from .locking import exclusive_lock
@@ -109,7 +110,22 @@ def read_attrs(path: Path, file_format: str = FORMAT, *, role: str = "input") ->
         raise SekdError(f"{path}: not a readable HDF5 file ({exc}); {fix}") from exc
     if attrs.get("format") != file_format:
         raise SekdError(f"{path}: not a sekd {kind} file (no format='{file_format}' attribute); {fix}")
+    if SHARDS in attrs:
+        _check_shards(Path(path), json.loads(attrs[SHARDS]))
     return attrs
+
+
+#: Attribute of a file whose arrays live in shard files (``shards``): {"folder", "files"}.
+SHARDS = "shards"
+
+
+def _check_shards(path: Path, record: dict) -> None:
+    """SekdError when the shard folder a file references is missing or holds fewer shards than it did."""
+    have = len(shards.shard_files(path))
+    if have < int(record.get("files", 0)):
+        raise SekdError(f"{path}: its arrays are in {record.get('files')} shard files under "
+                        f"{shards.shard_root(path).name}/ beside it, {have} found there; keep that folder with the file "
+                        "(they move together)")
 
 
 def hloc_attrs(f: h5py.File, path: Path) -> dict:
@@ -142,9 +158,13 @@ def hloc_attrs(f: h5py.File, path: Path) -> dict:
 
 def list_keys(path: Path) -> list[str]:
     """Keys of the images stored in a feature file, sorted."""
-    keys = []
     with h5py.File(path, "r") as f:
-        f.visititems(lambda name, obj: keys.append(name) if isinstance(obj, h5py.Group) and "keypoints" in obj else None)
+        return _keys_of(f)
+
+
+def _keys_of(f: h5py.File) -> list[str]:
+    keys: list[str] = []
+    f.visititems(lambda name, obj: keys.append(name) if isinstance(obj, h5py.Group) and "keypoints" in obj else None)
     return sorted(keys)
 
 
@@ -157,13 +177,14 @@ def read_features(path: Path, key: str) -> dict[str, np.ndarray]:
         # hloc may store float16 (its as_half option): everything downstream computes in float32.
         out = {name: group[name][()] for name in ARRAYS if name in group}
         out = {name: a.astype(np.float32) if a.dtype == np.float16 else a for name, a in out.items()}
+        shards.check_present(key, out, path)
         if "descriptors" not in out:
             raise SekdError(f"{path}: image '{key}' has keypoints but no descriptors; extract them with `sekd extract`")
     out["descriptors"] = out["descriptors"].T
     return out
 
 
-def _write_group(f: h5py.File, key: str, arrays: dict[str, np.ndarray]) -> None:
+def write_image_group(f: h5py.File, key: str, arrays: dict[str, np.ndarray]) -> None:
     if key in f:  # a re-merged part replaces, never duplicates
         del f[key]
     group = f.create_group(key)
@@ -341,13 +362,16 @@ def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None, write_g
     Call it once, at the end of a run: each call copies the whole file (none when there is
     nothing new). ``write_group(f, key, arrays)`` stores one part (default: a feature-file
     image group), so other files (matches) reuse the same crash-safe scheme. Streams the
-    chunks (memory: one chunk). Returns the number of parts merged.
+    chunks (memory: one chunk). Shards of ``<path>.shards/`` not referenced yet are referenced
+    by virtual datasets (``shards``). Returns the number of parts merged and shard items referenced.
     """
-    write_group = write_group or _write_group
+    write_group = write_group or write_image_group
     parts.flush()
     parts.recover()
     chunks = parts.chunks()
-    if not chunks and _has_attrs(path, attrs or {}):
+    shard_files = shards.shard_files(path)
+    unlinked = shards.all_keys(path) - set(list_keys(path)) if shard_files else set()
+    if not chunks and not unlinked and _has_attrs(path, attrs or {}):
         parts.drop([])
         return 0
     merge_id = uuid.uuid4().hex
@@ -359,6 +383,9 @@ def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None, write_g
             for key, arrays in parts.items(chunks):
                 write_group(f, key, arrays)
                 count += 1
+            if unlinked:
+                count += shards.link_shards(f, path, set(_keys_of(f)))
+                f.attrs[SHARDS] = json.dumps({"folder": shards.shard_root(path).name, "files": len(shard_files)})
             f.attrs.update(attrs or {})
             f.attrs["modified"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
             f.attrs[MERGE_ID] = merge_id
@@ -445,11 +472,13 @@ def prepare_output(path: Path, attrs: dict, parts: PartStore, overwrite: bool, c
         check_replaceable(path, attrs["format"])
         parts.clear()  # first: old parts must never reach the new file
         create_empty(path, attrs)
+        shards.clear(path)  # after: the old file referenced them until the new one replaced it
         return
     if not path.exists():
         parts.clear()
         path.parent.mkdir(parents=True, exist_ok=True)
         create_empty(path, attrs)
+        shards.clear(path)
         return
     existing = read_attrs(path, attrs["format"], role="output")
     parts.recover()

@@ -395,3 +395,14 @@ def test_retrieval_finds_the_true_neighbours_of_a_generated_street(tmp_path, sha
     recall = retrieval_recall(compute_global_descriptors(features, progress=False), names, truth, 10)
     assert recall >= 0.9, recall
     assert retrieval_recall(tmp_path / "missing.global.h5", names, truth, 10) is None
+
+
+def test_bench_scale_leaves_a_size_another_process_runs(tmp_path):
+    from sekd_sfm.bench.scale.run import ScaleConfig, run_scale_benchmark
+    from sekd_sfm.locking import exclusive_lock
+
+    (tmp_path / "n12").mkdir()
+    with exclusive_lock(tmp_path / "n12", "benchmark size folder"):  # as a second `sekd bench scale` would hold it
+        run_scale_benchmark(tmp_path, ScaleConfig(sizes=(12,), image_size=160))
+    assert not (tmp_path / "n12/result.json").exists() and not (tmp_path / "n12/scene").exists()
+    assert json.loads((tmp_path / "results.json").read_text())["results"] == []

@@ -129,12 +129,16 @@ def local_run(tmp_path_factory):
     return images, features, pairs, matches
 
 
-def test_extract_on_ray_identical_to_local(cluster, local_run, tmp_path):
+@pytest.mark.parametrize("merge", ["copy", "virtual"])
+def test_extract_on_ray_identical_to_local(cluster, local_run, tmp_path, merge):
     images, features, _, _ = local_run
     out = tmp_path / "features.h5"
     run = subprocess.run(_ray_cli(cluster, "extract", str(images), "-o", str(out), "--resize-max", "160",
-                                  "--max-keypoints", "300", "--no-progress"), check=False, capture_output=True, text=True, timeout=180)
+                                  "--max-keypoints", "300", "--no-progress", "--ray-merge", merge),
+                         check=False, capture_output=True, text=True, timeout=180)
     assert run.returncode == 0, run.stderr[-3000:]
+    with h5py.File(out, "r") as f:  # virtual: the file references the workers' shard files
+        assert f[f"{sorted(f.keys())[0]}/descriptors"].is_virtual == (merge == "virtual")
     assert "broken.jpg: not a decodable image" in run.stdout + run.stderr  # reported like any unreadable image
     assert _contents(out) == _contents(features)  # same keys, same arrays, byte for byte
     assert _attrs(out) == _attrs(features)

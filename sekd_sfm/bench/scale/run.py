@@ -23,6 +23,7 @@ rerun; ``results.json``, ``results.md`` and ``scale.png`` cover every finished s
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -34,6 +35,7 @@ import numpy as np
 
 from ...errors import SekdError
 from ...fsio import write_atomic
+from ...locking import exclusive_lock
 from ..metrics import pose_auc
 from .measure import Measurement, run_measured
 from .scene import SceneConfig, generate_scene, read_covisibility, read_scene
@@ -329,7 +331,12 @@ def run_size(out: Path, size: int, config: ScaleConfig, reconstruct_config) -> d
 # ----------------------------------------------------------------------------- whole benchmark
 
 def run_scale_benchmark(output_dir: str | Path, config: ScaleConfig, reconstruct_config=None) -> Path:
-    """Every size of ``config`` (finished ones skipped); writes results.json/.md and scale.png. Returns results.json."""
+    """Every size of ``config`` (finished ones skipped); writes results.json/.md and scale.png. Returns results.json.
+
+    Each size folder is locked while it runs: a second process on the same output folder
+    takes the sizes nobody is running (so two processes can share the sizes of one folder)
+    and the report covers every finished size.
+    """
     from ...sfm.reconstruct import ReconstructConfig
 
     reconstruct_config = reconstruct_config or ReconstructConfig()
@@ -342,11 +349,19 @@ def run_scale_benchmark(output_dir: str | Path, config: ScaleConfig, reconstruct
             logger.info("n=%d: finished earlier (%s), skipped", size, done)
             continue
         folder.mkdir(exist_ok=True)
-        result = run_size(folder, size, config, reconstruct_config)
-        from ...runtime import package_versions
+        with contextlib.ExitStack() as held:
+            try:
+                held.enter_context(exclusive_lock(folder, "benchmark size folder"))
+            except SekdError:
+                logger.warning("n=%d: another process is running this size (%s); skipped", size, folder)
+                continue
+            if done.is_file():  # finished by the process that held the lock a moment ago
+                continue
+            result = run_size(folder, size, config, reconstruct_config)
+            from ...runtime import package_versions
 
-        result["settings"] = {**asdict(replace(config, sizes=tuple(config.sizes))), "versions": package_versions()}
-        write_atomic(done, json.dumps(result, indent=1, default=str))
+            result["settings"] = {**asdict(replace(config, sizes=tuple(config.sizes))), "versions": package_versions()}
+            write_atomic(done, json.dumps(result, indent=1, default=str))
     return write_report(out)
 
 

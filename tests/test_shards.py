@@ -1,0 +1,116 @@
+"""Shard files referenced by virtual datasets (``--ray-merge virtual``), without Ray: the worker's writer and the merge."""
+import os
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+from hloc_readers import get_keypoints, list_h5_names
+from test_files_linear import feature_attrs, features_of
+
+from sekd_sfm import featurefile as ff
+from sekd_sfm import shards
+from sekd_sfm.cluster import _TaskParts
+from sekd_sfm.errors import SekdError
+
+
+def _items(first: int, count: int) -> list[tuple[str, dict[str, np.ndarray]]]:
+    items = []
+    for i in range(first, first + count):
+        arrays = features_of(i)
+        arrays["uncertainty"] = np.float32(1.5)
+        items.append((f"seq/{i:04d}.jpg", arrays))
+    return items
+
+
+@pytest.fixture
+def virtual_file(tmp_path):
+    """A feature file referencing 2 shards of 3 images (written as Ray workers write them), and the expected arrays."""
+    output = tmp_path / "features.h5"
+    ff.create_empty(output, feature_attrs())
+    for first in (0, 3):
+        name, problem = _TaskParts(str(output), "virtual").write(_items(first, 3))
+        assert problem == "" and name.endswith(".h5")
+    assert ff.merge_parts(output, ff.PartStore(output)) == 6
+    return output, dict(_items(0, 6))
+
+
+def test_virtual_file_reads_like_a_copied_one(virtual_file, tmp_path):
+    output, expected = virtual_file
+    copied = tmp_path / "copied.h5"
+    ff.create_empty(copied, feature_attrs())
+    parts = ff.PartStore(copied)
+    for key, arrays in expected.items():
+        parts.save(key, arrays)
+    ff.merge_parts(copied, parts)
+    assert ff.list_keys(output) == ff.list_keys(copied) == sorted(expected)
+    assert sorted(list_h5_names(output)) == sorted(list_h5_names(copied)) == sorted(expected)  # hloc's listing
+    for key in expected:
+        ours, theirs = ff.read_features(output, key), ff.read_features(copied, key)
+        assert ours.keys() == theirs.keys()
+        for name in ours:
+            assert ours[name].dtype == theirs[name].dtype and np.array_equal(ours[name], theirs[name])
+        keypoints, uncertainty = get_keypoints(output, key, return_uncertainty=True)
+        assert np.array_equal(keypoints, expected[key]["keypoints"]) and uncertainty == pytest.approx(1.5)
+    with h5py.File(output, "r") as f:
+        assert f["seq/0000.jpg/descriptors"].is_virtual
+    assert os.path.getsize(output) < os.path.getsize(copied)  # references, not arrays
+
+
+def test_virtual_file_moves_with_its_folder_and_refuses_to_read_without_it(virtual_file, tmp_path):
+    output, expected = virtual_file
+    moved = tmp_path / "elsewhere"
+    moved.mkdir()
+    shutil.move(output, moved / "features.h5")
+    shutil.move(shards.shard_root(output), shards.shard_root(moved / "features.h5"))
+    cwd = os.getcwd()
+    try:
+        os.chdir("/")  # sources resolve against the file's folder, not the working directory
+        assert np.array_equal(ff.read_features(moved / "features.h5", "seq/0004.jpg")["descriptors"],
+                              expected["seq/0004.jpg"]["descriptors"])
+    finally:
+        os.chdir(cwd)
+    shutil.rmtree(shards.shard_root(moved / "features.h5"))
+    with pytest.raises(SekdError, match=r"2 shard files under features.h5.shards/.*0 found"):
+        ff.read_attrs(moved / "features.h5")
+    with pytest.raises(SekdError, match="shard file that is missing"):
+        ff.read_features(moved / "features.h5", "seq/0004.jpg")
+
+
+def test_shards_count_as_done_before_a_merge_and_are_referenced_once(tmp_path):
+    output = tmp_path / "features.h5"
+    ff.create_empty(output, feature_attrs())
+    _TaskParts(str(output), "virtual").write(_items(0, 2))  # a driver killed before its merge
+    assert shards.all_keys(output) == {"seq/0000.jpg", "seq/0001.jpg"}
+    assert ff.list_keys(output) == []
+    parts = ff.PartStore(output)
+    parts.save("seq/0002.jpg", features_of(2))  # the rerun's own (local) item
+    assert ff.merge_parts(output, parts) == 3
+    assert ff.list_keys(output) == ["seq/0000.jpg", "seq/0001.jpg", "seq/0002.jpg"]
+    before = os.stat(output).st_mtime_ns
+    assert ff.merge_parts(output, ff.PartStore(output)) == 0  # nothing new: the file is left alone
+    assert os.stat(output).st_mtime_ns == before
+
+
+def test_overwrite_drops_the_old_shards_after_the_new_file_is_in_place(virtual_file):
+    output, _ = virtual_file
+    ff.prepare_output(output, feature_attrs(), ff.PartStore(output), overwrite=True, compare=("config",))
+    assert ff.list_keys(output) == [] and not shards.shard_root(output).exists()
+
+
+def test_a_torn_shard_never_counts(tmp_path):
+    output = tmp_path / "features.h5"
+    ff.create_empty(output, feature_attrs())
+    root = shards.shard_root(output)
+    root.mkdir()
+    (root / ".00001-123-x.h5.123.tmp").write_bytes(b"half a shard")  # a worker killed mid-write
+    assert shards.shard_files(output) == [] and shards.all_keys(output) == set()
+    assert ff.merge_parts(output, ff.PartStore(output)) == 0
+
+
+def test_unwritable_shard_folder_is_reported_not_raised(tmp_path):
+    output = tmp_path / "features.h5"
+    ff.create_empty(output, feature_attrs())
+    shards.shard_root(output).write_text("a file where the folder should be")
+    name, problem = _TaskParts(str(output), "virtual").write(_items(0, 1))
+    assert name == "" and "features.h5.shards: the Ray worker" in problem and "shared storage" in problem
