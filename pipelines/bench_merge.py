@@ -2,9 +2,10 @@
 
 Takes the images of a real feature file (e.g. 640 px SEKD, 2,000 keypoints: ~1 MB per
 image), repeats them under new keys up to N images, writes them as Ray workers do (tasks of
-4 images: part chunks for ``copy``, shard files for ``virtual``; one process here, spread
-over the workers in a run), then times the driver's merge into ``features.h5``
-(``featurefile.merge_parts``: copy + fsync + rename, as at the end of a run) and checks
+4 images: part chunks for ``copy``, shard files and their descriptions for ``virtual``; one
+process here, spread over the workers in a run), then times the driver's merge into
+``features.h5`` (``featurefile.merge_parts``: copy + fsync + rename, as at the end of a run;
+for ``virtual`` the workers' descriptions saved as a manifest first, as the driver does) and checks
 that both files read the same arrays. Prints images/s and MB/s of each side, and the file
 sizes. The page cache is dropped before each merge when run as root (so the merge reads
 from disk as after a real run on shared storage); `--keep-cache` skips that.
@@ -63,6 +64,7 @@ def main() -> None:
         out = work / mode / "features.h5"
         out.parent.mkdir()
         ff.create_empty(out, attrs)
+        described = {}
         t0 = time.perf_counter()
         for start in range(0, len(items), TASK):
             task = items[start:start + TASK]
@@ -71,11 +73,14 @@ def main() -> None:
                 for key, arrays in task:
                     parts.save(key, arrays)
                 parts.flush()
-            else:
-                shards.write_shard(out, task, ff.write_image_group, "bench")
+            else:  # a worker writes its shard and describes it (shapes, dtypes) for the driver
+                shard = shards.write_shard(out, task, ff.write_image_group, "bench")
+                described[shard.name] = shards.describe(shard)
         t1 = time.perf_counter()
         cache = _drop_cache(args.keep_cache)
         t2 = time.perf_counter()
+        if described:  # the driver's side: the workers' descriptions saved, then the merge
+            shards.write_manifest(out, described)
         merged = ff.merge_parts(out, ff.PartStore(out))
         t3 = time.perf_counter()
         assert merged == len(items), (mode, merged)

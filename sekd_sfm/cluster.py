@@ -204,17 +204,23 @@ def _writer() -> str:
     return "".join(c if c.isalnum() else "_" for c in _node())
 
 
-def _rows(keys: list[str], errors: list[str], chunk: str = "", fatal: bool = False) -> dict[str, np.ndarray]:
-    """One output batch: ``key``, ``error`` ("" = ok), ``chunk`` (file name holding the ok keys), ``fatal``.
+def _rows(keys: list[str], errors: list[str], chunk: str = "", fatal: bool = False,
+          meta: dict[str, dict] | None = None) -> dict[str, np.ndarray]:
+    """One output batch: ``key``, ``error`` ("" = ok), ``chunk`` (file name holding the ok keys), ``fatal``, ``meta``.
 
-    No arrays: these go to the part store on the shared storage, so each row costs the
-    driver about 100 bytes whatever the result's size.
+    No arrays: these go to the part store (or shards) on the shared storage, so each row
+    costs the driver a few hundred bytes whatever the result's size. ``meta``: per key, the
+    shapes and dtypes of its arrays in a shard (``shards.describe``, JSON), so the driver
+    references shards without opening them.
     """
+    meta = meta or {}
     return {
         "key": np.array(keys, dtype=object),
         "error": np.array(errors, dtype=object),
         "chunk": np.array([chunk if not error else "" for error in errors], dtype=object),
         "fatal": np.full(len(keys), fatal),
+        "meta": np.array([json.dumps(meta[key], separators=(",", ":")) if key in meta else "" for key in keys],
+                         dtype=object),
     }
 
 
@@ -229,11 +235,19 @@ class _TaskParts:
         self.output, self.writer, self.merge = Path(output), _writer(), merge
 
     def write(self, items: list[tuple[str, dict[str, np.ndarray]]]) -> tuple[str, str]:
-        """``(file name, "")`` once ``items`` are on disk (``""`` if none), or ``("", problem)`` if it cannot be written."""
+        """``(file name, "")`` once ``items`` are on disk (``""`` if none), or ``("", problem)`` if it cannot be written.
+
+        For a shard, ``self.meta`` then holds its ``shards.describe`` (else it is empty).
+        """
         folder = shards.shard_root(self.output) if self.merge == "virtual" else ff.PartStore(self.output).root
+        self.meta: dict[str, dict] = {}
         try:
             if self.merge == "virtual":
-                return (shards.write_shard(self.output, items, ff.write_image_group, self.writer).name if items else ""), ""
+                if not items:
+                    return "", ""
+                path = shards.write_shard(self.output, items, ff.write_image_group, self.writer)
+                self.meta = shards.describe(path)  # its own fresh file: read from the page cache
+                return path.name, ""
             # A new store per task, flushed only here: a failed write leaves nothing buffered behind.
             parts = ff.PartStore(self.output, max_items=len(items) + 1, max_bytes=1 << 62, max_seconds=math.inf,
                                  writer=self.writer)
@@ -290,7 +304,7 @@ class _ExtractWorker:
         chunk, problem = self.out.write(done)
         if problem:
             return _rows(keys, [problem] * len(keys), fatal=True)
-        return _rows(keys, errors, chunk)
+        return _rows(keys, errors, chunk, meta=self.out.meta)
 
 
 class _Collected:
@@ -368,8 +382,11 @@ def _stream(ray, items: list[dict], worker, args: tuple, base: int, options: Ray
 
 
 def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
-           on_error: Callable[[str, str], None], write_group, progress: bool, folder: Path | None = None) -> None:
+           on_error: Callable[[str, str], None], write_group, progress: bool, folder: Path | None = None,
+           described: dict[str, dict] | None = None) -> None:
     """Count the keys the workers report as written, report failures, then check their chunks are visible here.
+
+    ``described`` collects the workers' shard descriptions (``chunk -> key -> arrays``).
 
     Logs the driver's load: the bytes it received per result, and the CPU time of the driver
     process (its Ray threads included) per result, i.e. how many results per second it could
@@ -383,13 +400,16 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
             if first is None:
                 first, cpu0 = time.monotonic(), time.process_time()  # from here on the driver only absorbs results
             received += len(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))
-            for key, error, chunk, fatal in zip(batch["key"], batch["error"], batch["chunk"], batch["fatal"]):
+            for key, error, chunk, fatal, meta in zip(batch["key"], batch["error"], batch["chunk"], batch["fatal"],
+                                                      batch["meta"]):
                 if error and fatal:
                     raise SekdError(str(error))
                 if error:
                     on_error(str(key), str(error))
                 else:
                     chunks.add(str(chunk))
+                    if meta and described is not None:
+                        described.setdefault(str(chunk), {})[str(key)] = json.loads(str(meta))
             done += len(batch["key"])
             bar.update(len(batch["key"]))
         _check_visible(folder or parts.root, chunks)
@@ -462,8 +482,13 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
                 str(Path(output).resolve()), options.merge)
         results = _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
         folder = shards.shard_root(output) if options.merge == "virtual" else None
-        _drain(results, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None, progress,
-               folder)
+        described: dict[str, dict] = {}
+        try:
+            _drain(results, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None,
+                   progress, folder, described)
+        finally:  # also when interrupted: the merge then references these shards without opening them
+            if described:
+                shards.write_manifest(output, described)
     finally:
         if owned:
             ray.shutdown()

@@ -293,8 +293,8 @@ def test_workers_send_back_only_keys(local_run, tmp_path):
     finally:
         torch.set_num_threads(threads)
 
-    assert sorted(back) == ["chunk", "error", "fatal", "key"]  # no arrays come back
-    assert list(back["key"]) == keys and not back["fatal"].any()
+    assert sorted(back) == ["chunk", "error", "fatal", "key", "meta"]  # no arrays come back
+    assert list(back["key"]) == keys and not back["fatal"].any() and not any(back["meta"])  # meta: shards only
     assert [bool(e) for e in back["error"]] == [k == "broken.jpg" for k in keys]
     chunks = sorted(ff.PartStore(out).root.glob("*.npz"))
     assert [c.name for c in chunks] == sorted({c for c in back["chunk"] if c})  # one chunk per task, on disk
@@ -308,7 +308,7 @@ def test_workers_send_back_only_keys(local_run, tmp_path):
     assert sent < 400 * len(keys)  # keys, errors, chunk names: the error line is the longest
     assert sum(a.nbytes for arrays in saved.values() for a in arrays.values()) > 100 * sent
 
-    assert sorted(match_back) == ["chunk", "error", "fatal", "key"] and len(match_back["key"]) == 10
+    assert sorted(match_back) == ["chunk", "error", "fatal", "key", "meta"] and len(match_back["key"]) == 10
     assert len(pickle.dumps(match_back)) < 200 * 10
     with h5py.File(matches, "r") as f:
         for key, arrays in ff.PartStore(match_out).load_all().items():

@@ -114,3 +114,26 @@ def test_unwritable_shard_folder_is_reported_not_raised(tmp_path):
     shards.shard_root(output).write_text("a file where the folder should be")
     name, problem = _TaskParts(str(output), "virtual").write(_items(0, 1))
     assert name == "" and "features.h5.shards: the Ray worker" in problem and "shared storage" in problem
+
+
+def test_merge_references_described_shards_without_opening_them(tmp_path, monkeypatch):
+    output = tmp_path / "features.h5"
+    ff.create_empty(output, feature_attrs())
+    writer = _TaskParts(str(output), "virtual")
+    described = {}
+    for first in (0, 2):
+        name, _ = writer.write(_items(first, 2))
+        described[name] = writer.meta  # what a worker sends with its keys
+    assert writer.meta["seq/0002.jpg"]["keypoints"] == [[50, 2], "<f4", {"uncertainty": 1.5}]
+    assert writer.meta["seq/0002.jpg"]["descriptors"][:2] == [[16, 50], "<f4"]  # D x N, as hloc stores it
+    shards.write_manifest(output, described)
+
+    def no_reading(path):
+        raise AssertionError(f"{path} was opened")
+
+    monkeypatch.setattr(shards, "describe", no_reading)
+    assert ff.merge_parts(output, ff.PartStore(output)) == 4
+    monkeypatch.undo()
+    for key, arrays in _items(0, 4):
+        read = ff.read_features(output, key)
+        assert np.array_equal(read["descriptors"], arrays["descriptors"]) and read["keypoints"].dtype == np.float32
