@@ -67,6 +67,10 @@ class RetrievalConfig:
     seed: int = 0
 
 
+#: Fewest sampled descriptors per visual word (the vocabulary shrinks for tiny collections).
+SAMPLES_PER_WORD = 32
+
+
 @dataclass
 class Vocabulary:
     """PCA and k-means centroids of local descriptors: ``mean`` (D), ``projection`` (D x d), ``centroids`` (k x d)."""
@@ -153,7 +157,10 @@ def learn_vocabulary(features: Path, names: list[str], config: RetrievalConfig) 
     projection = eigvecs[:, eigvals.argsort(descending=True)[:dim]].float()  # D x d, top principal axes
     reduced = torch.nn.functional.normalize(x @ projection, dim=1)
     del x
-    centroids = kmeans(reduced, min(config.vocabulary_size, len(reduced)), config.kmeans_iterations, config.seed)
+    # At least SAMPLES_PER_WORD descriptors per word: with fewer, words sit on single descriptors,
+    # residuals vanish and the VLADs of a small collection carry nothing (tens of photos).
+    words = min(config.vocabulary_size, max(1, len(reduced) // SAMPLES_PER_WORD))
+    centroids = kmeans(reduced, words, config.kmeans_iterations, config.seed)
     return Vocabulary(mean.numpy(), projection.numpy(), centroids.numpy())
 
 
