@@ -139,6 +139,7 @@ def _connect(options: RayOptions):
     if ray.is_initialized():
         return ray, False
     address = None if options.address == "auto" else options.address
+    start = time.monotonic()
     try:
         # Worker output stays in the cluster's logs: errors come back as results, and the
         # driver's terminal keeps one progress bar.
@@ -149,6 +150,7 @@ def _connect(options: RayOptions):
             "`ray start --head` or pass --ray-address HOST:PORT of a running one"
         ) from None
     _quiet_ray_data()
+    logger.info("Ray: connected to the cluster in %.1f s", time.monotonic() - start)
     return ray, True
 
 

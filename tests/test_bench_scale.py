@@ -20,6 +20,7 @@ from sekd_sfm.bench.scale.scene import (
     MIN_TEXTURED,
     apparent_size,
     assign_textures,
+    pavement_texture,
     texture_cells,
     textured_fraction,
     covisibility_counts,
@@ -140,28 +141,36 @@ def test_pixel_overlap_counts_only_what_the_other_photo_sees_unoccluded(tmp_path
 
 def test_assign_textures_gives_every_face_its_own_region():
     sizes = [(640, 480), (480, 640)]
-    faces = [_wall(0.0, 0.0, 5.0, 2.0 + i % 3, 1.0 + i % 2) for i in range(14)]  # 14 faces > 2 photos x 2 mirrors
+    faces = [_wall(0.0, 0.0, 5.0, 2.0 + i % 3, 1.0 + i % 2) for i in range(14)]  # 14 faces > 2 photos x 2 x 2 tiles
     assign_textures(faces, sizes, np.random.default_rng(0))
-    keys = [(f.texture, f.crop[0] * 2 // sizes[f.texture][0], f.crop[1] * 2 // sizes[f.texture][1], f.mirror)
-            for f in faces]
-    assert len(set(keys)) == len(faces)  # 2 x 2 tiles x 2 mirrors x 2 photos = 16 slots, each used once
+    keys = [(f.texture, f.crop[0] // (sizes[f.texture][0] // 3), f.crop[1] // (sizes[f.texture][1] // 3)) for f in faces]
+    assert len(set(keys)) == len(faces)  # 2 photos x 3 x 3 tiles = 18 slots, each used at most once
+    assert not any(f.mirror for f in faces)  # mirrored copies match their originals: never used
     for f in faces:
         x, y, w, h = f.crop
-        tw, th = sizes[f.texture][0] // 2, sizes[f.texture][1] // 2
+        tw, th = sizes[f.texture][0] // 3, sizes[f.texture][1] // 3
         assert x // tw == (x + w - 1) // tw and y // th == (y + h - 1) // th  # inside one tile
         assert abs(w / h - f.width / f.height) < 0.02 * f.width / f.height  # the face's own aspect
     assert assign_textures([], sizes, np.random.default_rng(0)) == []
 
 
 def test_assign_textures_cuts_only_as_many_photos_finer_as_needed():
-    # 5 faces, 2 photos x 2 mirrors = 4 whole sheets: one sheet is cut into 2 x 2, the other three stay whole.
-    sizes = [(640, 480), (640, 480)]
+    # 5 faces, 4 photos: one photo is cut into 2 x 2, the other three stay whole.
+    sizes = [(640, 480)] * 4
     faces = [_wall(0.0, 0.0, 5.0, 4.0, 3.0) for _ in range(5)]
     priority = np.array([1.0, 5.0, 2.0, 4.0, 3.0])
     assign_textures(faces, sizes, np.random.default_rng(1), priority=priority)
     whole = [i for i, f in enumerate(faces) if f.crop[2] > 320]
     assert sorted(whole) == [1, 3, 4]  # the three largest priorities take the whole photos
-    assert len({(f.texture, f.mirror) for f in faces}) == 4
+    assert len({f.texture for f in faces}) == 4
+
+
+def test_pavement_textures_are_textured_unique_and_repeatable():
+    a = pavement_texture(96, 64, np.random.default_rng([0, 4, 1]))
+    assert a.shape == (64, 96, 3) and a.dtype == np.uint8
+    assert np.array_equal(a, pavement_texture(96, 64, np.random.default_rng([0, 4, 1])))
+    assert not np.array_equal(a, pavement_texture(96, 64, np.random.default_rng([0, 4, 2])))
+    assert textured_fraction(texture_cells(a), (0, 0, 96, 64)) == 1.0
 
 
 def test_texture_cells_and_textured_fraction_hand_computed():

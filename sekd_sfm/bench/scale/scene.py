@@ -4,12 +4,13 @@ Layout (world units are metres, z up): a rectangular block, twice as long as wid
 perimeter grows with the number of photos. Along each side stand box buildings (6-14 m
 wide, 6-18 m high, set back 0-1.5 m from the street line, so their side walls show), with
 taller towers behind them on large blocks, and a textured pavement strip in front. Every
-planar face carries its own region of a photo (``assign_textures``: tiles of the photos,
-each also usable mirrored, never one region twice while the photos last; near facades take
-whole photos first, pavement and far towers the finer tiles; every crop at least 70 %
-textured, so no photo of the walk sees only sky or a black screen) with its
-own colour gain, so no two faces share content: repeated content would hand retrieval and
-matching look-alikes that no real street has this often. The camera walks once around the block (one photo every ``spacing`` m, 6-9 m from the
+upright face carries its own region of a photo (``assign_textures``: tiles of the photos,
+never one region twice while the photos last; the faces that fill most of a view take
+whole photos first, far towers and side walls the finer tiles; every crop at least 70 %
+textured, so no photo of the walk sees only sky or a black screen) with its own colour
+gain, and every pavement tile its own generated texture (``pavement_texture``), so no two
+faces share content: repeated content (even mirrored, see ``MIRRORS``) would hand retrieval
+and matching look-alikes that no real street has this often. The camera walks once around the block (one photo every ``spacing`` m, 6-9 m from the
 facades, 1.5-1.7 m high), looking at the buildings with small yaw / pitch / roll jitter,
 and each photo gets its own exposure (gain and gamma) and sensor noise. A few unrelated
 photos (distractors, never used as textures) are mixed in at random positions.
@@ -59,7 +60,7 @@ from tqdm import tqdm
 from ...errors import SekdError
 
 logger = logging.getLogger("sekd")
-FORMAT = "sekd-scale-scene/3"
+FORMAT = "sekd-scale-scene/4"
 NEAR = 0.1          # near clipping plane (m)
 MAX_RANGE = 90.0    # faces farther than this are not drawn (m); they would be a few pixels
 DISTRACTOR_POOL = 32  # photos set aside as distractors, never used as textures
@@ -248,6 +249,13 @@ TEXTURED_GRADIENT = 2.0
 #: camera chain for a reason no benchmark of scale should measure.
 MIN_TEXTURED = 0.7
 TEXTURE_CELL = 16
+#: Texture copies per photo region: straight only. A mirrored copy looked like a second
+#: texture, but left-right symmetric structures still match across it: on a 250-photo block
+#: photos of a face and of its mirrored twin 40 m away verified with 15-37 inliers (SEKD and
+#: SIFT alike), and those false links stopped both pipelines' maps halfway.
+MIRRORS = (False,)
+#: Texels per metre of the generated pavement textures (about the facades' median).
+PAVEMENT_TEXELS = 48
 
 
 def texture_cells(photo: np.ndarray, cell: int = TEXTURE_CELL) -> np.ndarray:
@@ -277,7 +285,7 @@ def _tile_slots(num_faces: int, num_photos: int, rng: np.random.Generator, slack
     tiles, with only as many sheets cut one level finer (g + 1) as needed: textures stay as
     large (as sharp) as the pool allows, instead of every sheet dropping to the finer grid.
     """
-    sheets = [(p, m) for p in range(num_photos) for m in (False, True)]
+    sheets = [(p, m) for p in range(num_photos) for m in MIRRORS]
     order = rng.permutation(len(sheets))
     need = math.ceil(num_faces * slack)
     g = 1
@@ -316,7 +324,7 @@ def assign_textures(faces: list[Face], sizes: list[tuple[int, int]], rng: np.ran
                     priority: np.ndarray | None = None) -> list[Face]:
     """Give every face its own texture region, in place; returns ``faces``.
 
-    Photos (``sizes``: width, height), each usable straight or mirrored, are cut into tiles
+    Photos (``sizes``: width, height), each usable once per ``MIRRORS`` entry, are cut into tiles
     (``_tile_slots``); faces in decreasing ``priority`` (default: area; ``apparent_size``
     in a scene) take the largest tiles first, each tile used once while
     they last (then reused, with a warning). A face's crop is the largest region of its own
@@ -445,13 +453,26 @@ class Textures:
     """Photos used as textures, loaded on first use, with a 3-level image pyramid each."""
 
     def __init__(self, paths: list[Path]):
-        self.paths = paths
+        self.paths: list[Path | None] = list(paths)
         self._cache: dict[int, list[np.ndarray]] = {}
+        self._generated: dict[int, tuple[int, int, tuple]] = {}
         self.sizes = [_image_size(p) for p in paths]
+
+    def add_pavement(self, width: int, height: int, seed: tuple) -> int:
+        """Register a generated pavement texture (``pavement_texture``, made on first use); returns its index."""
+        index = len(self.sizes)
+        self.paths.append(None)
+        self.sizes.append((width, height))
+        self._generated[index] = (width, height, seed)
+        return index
 
     def level(self, index: int, level: int) -> np.ndarray:
         if index not in self._cache:
-            image = cv2.imread(str(self.paths[index]), cv2.IMREAD_COLOR)
+            if index in self._generated:
+                width, height, seed = self._generated[index]
+                image = pavement_texture(width, height, np.random.default_rng(list(seed)))
+            else:
+                image = cv2.imread(str(self.paths[index]), cv2.IMREAD_COLOR)
             if image is None:
                 raise SekdError(f"{self.paths[index]}: cannot read this texture photo; remove it or fix it")
             pyramid = [image]
@@ -459,6 +480,34 @@ class Textures:
                 pyramid.append(cv2.pyrDown(pyramid[-1]))
             self._cache[index] = pyramid
         return self._cache[index][level]
+
+
+def pavement_texture(width: int, height: int, rng: np.random.Generator) -> np.ndarray:
+    """A paving texture (H x W x 3 uint8 BGR), unique for ``rng``: smooth multi-octave noise, grain,
+    stones and cracks. Pavement takes no photo, so the photos go to the facades at full size."""
+    grey = np.zeros((height, width), np.float32)
+    amplitude = 1.0
+    for cells in (4, 8, 16, 32, 64):  # value noise: random grids upsampled, halving amplitude per octave
+        grid = rng.standard_normal((max(2, height * cells // max(width, height)), max(2, width * cells // max(width, height))))
+        grey += amplitude * cv2.resize(grid.astype(np.float32), (width, height), interpolation=cv2.INTER_CUBIC)
+        amplitude *= 0.6
+    grey = 128 + 22 * grey / max(float(grey.std()), 1e-6)
+    grey += rng.normal(0, 9, (height, width)).astype(np.float32)  # grain
+    for _ in range(int(rng.integers(20, 60)) * width * height // (384 * 384)):  # stones: small light or dark blobs
+        center = (int(rng.integers(width)), int(rng.integers(height)))
+        axes = (int(rng.integers(2, 7)), int(rng.integers(2, 7)))
+        cv2.ellipse(grey, center, axes, float(rng.uniform(0, 180)), 0, 360, float(rng.uniform(60, 210)), -1)
+    for _ in range(int(rng.integers(1, 4))):  # cracks: dark random walks
+        point = np.array([rng.uniform(0, width), rng.uniform(0, height)])
+        heading = rng.uniform(0, 2 * np.pi)
+        for _ in range(int(rng.integers(10, 40))):
+            heading += rng.normal(0, 0.5)
+            nxt = point + rng.uniform(4, 12) * np.array([np.cos(heading), np.sin(heading)])
+            cv2.line(grey, tuple(int(v) for v in point), tuple(int(v) for v in nxt), float(rng.uniform(30, 70)),
+                     int(rng.integers(1, 3)))
+            point = nxt
+    tint = rng.uniform(0.9, 1.1, 3).astype(np.float32)
+    return np.clip(grey[..., None] * tint, 0, 255).astype(np.uint8)
 
 
 def _image_size(path: Path) -> tuple[int, int]:
@@ -658,12 +707,14 @@ class Layout:
     apparent: np.ndarray            # per face, ``apparent_size`` (sr): how much of a view it can fill
 
     def texture_density(self) -> dict:
-        """Texels per metre of the faces' textures, quantiles weighted by apparent size, and the
-        pixels per metre of a photo at the walk's mean distance: texture sharper than the photos
-        where texels >= pixels."""
-        density = np.array([face.crop[2] / face.width for face in self.faces])
+        """Texels per metre of the facades' photo textures, quantiles weighted by apparent size, and
+        the pixels per metre of a photo at the walk's mean distance: textures sharper than the photos
+        where texels >= pixels. (The generated pavement has ``PAVEMENT_TEXELS``.)"""
+        photo = [i for i, face in enumerate(self.faces) if self.textures.paths[face.texture] is not None]
+        density = np.array([self.faces[i].crop[2] / self.faces[i].width for i in photo])
+        weights = self.apparent[photo]
         order = np.argsort(density)
-        weight = np.cumsum(self.apparent[order]) / max(float(self.apparent.sum()), 1e-12)
+        weight = np.cumsum(weights[order]) / max(float(weights.sum()), 1e-12)
         quantile = {q: float(density[order][min(np.searchsorted(weight, q), len(order) - 1)]) for q in (0.1, 0.5, 0.9)}
         camera = self.cameras[0]
         return {"texels_per_m_p10": round(quantile[0.1], 1), "texels_per_m_p50": round(quantile[0.5], 1),
@@ -693,7 +744,14 @@ def layout_scene(config: SceneConfig) -> Layout:
     faces = build_faces(block, rng, len(texture_paths), textures.sizes)
     centers = np.array([camera.center for camera in cameras[::4]])
     apparent = apparent_size(faces, centers)
-    assign_textures(faces, textures.sizes, np.random.default_rng([config.seed, 3]), cells, priority=apparent)
+    upright = [i for i, face in enumerate(faces) if abs(face.normal[2]) <= 0.5]  # facades and towers: photos
+    assign_textures([faces[i] for i in upright], textures.sizes[:len(texture_paths)],
+                    np.random.default_rng([config.seed, 3]), cells, priority=apparent[upright])
+    for i, face in enumerate(faces):  # pavement: a generated texture of its own
+        if abs(face.normal[2]) > 0.5:
+            width, height = round(face.width * PAVEMENT_TEXELS), round(face.height * PAVEMENT_TEXELS)
+            face.texture = textures.add_pavement(width, height, (config.seed, 4, i))
+            face.crop, face.mirror = (0, 0, width, height), False
     distractor_slots = set(rng.choice(config.num_images, num_distractors, replace=False).tolist())
     names = [f"{i:05d}.jpg" for i in range(config.num_images)]
     return Layout(block, faces, cameras, textures, pool, names, distractor_slots, apparent)
