@@ -41,7 +41,9 @@ import math
 import os
 import pickle
 import socket
+import threading
 import time
+import uuid
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -53,6 +55,7 @@ from tqdm import tqdm
 from . import featurefile as ff
 from . import shards
 from .errors import Interrupted, SekdError
+from .fsio import write_atomic
 
 logger = logging.getLogger("sekd")
 
@@ -80,6 +83,7 @@ class RayOptions:
     workers: int | None = None
     images_per_task: int | None = None
     merge: str = "copy"
+    driver_helps: bool = True
 
 
 #: How extracted features reach ``features.h5``: ``copy`` = the arrays are copied in (one
@@ -266,7 +270,8 @@ class _TaskParts:
 class _ExtractWorker:
     """A Ray actor: builds the extractor once, then extracts the images of each batch (``key`` column)."""
 
-    def __init__(self, image_dir: str, config, described: dict, threads: int, output: str, merge: str = "copy"):
+    def __init__(self, image_dir: str, config, described: dict, threads: int, output: str, merge: str = "copy",
+                 claims: str = ""):
         from .extract import describe_config
         from .features import build_extractor
         from .runtime import set_num_threads
@@ -285,14 +290,23 @@ class _ExtractWorker:
         # Images are decoded on a background thread while the network runs (as the local loop does).
         self.pool = ThreadPoolExecutor(max_workers=1)
         self.out = _TaskParts(output, merge)
+        self.claims = Path(claims) if claims else None
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        from .extract import _features_of, _load
-        from .images import ImageReadError
-
         keys = [str(k) for k in batch["key"]]
         if self.problem:
             return _rows(keys, [self.problem] * len(keys), fatal=True)
+        theirs = sorted(set(keys) & _read_claims(self.claims))
+        if theirs:  # the driver extracted these itself while the workers started
+            mine = [key for key in keys if key not in theirs]
+            rows = self._extract(mine) if mine else _rows([], [])
+            return _concat_rows(rows, _rows(theirs, [""] * len(theirs), BY_DRIVER))
+        return self._extract(keys)
+
+    def _extract(self, keys: list[str]) -> dict[str, np.ndarray]:
+        from .extract import _features_of, _load
+        from .images import ImageReadError
+
         color = getattr(self.extractor, "color", False)
         loads = [self.pool.submit(_load, self.image_dir / key, self.config.resize_max, color, self.config.max_pixels)
                  for key in keys]
@@ -307,6 +321,86 @@ class _ExtractWorker:
         if problem:
             return _rows(keys, [problem] * len(keys), fatal=True)
         return _rows(keys, errors, chunk, meta=self.out.meta)
+
+
+#: ``chunk`` of a row whose image the driver extracted itself (``_DriverHelper``): counted there.
+BY_DRIVER = "@driver"
+
+
+def _concat_rows(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {name: np.concatenate([a[name], b[name]]) for name in a}
+
+
+def _read_claims(path: Path | None) -> set[str]:
+    """Keys the driver claimed (one per line), or none; a claims file being replaced reads as before or after."""
+    if path is None:
+        return set()
+    try:
+        return set(path.read_text(encoding="utf-8").split("\n")) - {""}
+    except OSError:
+        return set()
+
+
+class _DriverHelper:
+    """The driver extracts images itself, from the end of the list, while the Ray workers start.
+
+    A worker needs seconds to start (a process, Ray, torch, the model) while the driver holds
+    a built extractor and idles; on a run of a few hundred images that start-up is a large
+    part of the time. Before each image the driver adds its key to a claims file (replaced
+    atomically, a path on the shared storage named for this run); workers skip claimed keys.
+    Each image is on disk (a part chunk) before the progress bar counts it. It stops at the
+    first result from the workers. A key the workers took before it was
+    claimed is extracted twice with identical numbers (same configuration and thread count);
+    the part store keeps one.
+    """
+
+    def __init__(self, image_dir: Path, todo: list[str], extractor, config, parts: ff.PartStore, claims: Path,
+                 threads: int):
+        self.image_dir, self.todo, self.extractor, self.config = image_dir, todo, extractor, config
+        self.parts, self.claims, self.threads = parts, claims, threads
+        self.stop = threading.Event()
+        self.claimed: list[str] = []
+        self.errors: list[tuple[str, str]] = []
+        self.done = 0
+        self.thread: threading.Thread | None = None
+        self.failure: BaseException | None = None
+
+    def start(self, bar) -> None:
+        self.bar = bar
+        self.thread = threading.Thread(target=self._run, name="sekd-driver-helper", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        from .extract import _features_of, _load
+        from .images import ImageReadError
+        from .runtime import set_num_threads
+
+        set_num_threads(self.threads)  # the workers' thread count: identical numbers
+        color = getattr(self.extractor, "color", False)
+        try:
+            for key in reversed(self.todo[len(self.todo) // 2:]):  # never more than half the run
+                if self.stop.is_set():
+                    break
+                self.claimed.append(key)
+                write_atomic(self.claims, "\n".join(self.claimed) + "\n", durable=False)
+                try:
+                    loaded = _load(self.image_dir / key, self.config.resize_max, color, self.config.max_pixels)
+                    self.parts.save(key, _features_of(self.extractor, loaded))
+                    self.parts.flush()  # on disk before it counts, as the workers' results
+                except ImageReadError as exc:
+                    self.errors.append((key, str(exc)))
+                self.done += 1
+                self.bar.update(1)
+        except BaseException as exc:  # noqa: BLE001 - reported by the driver's thread in finish()
+            self.failure = exc
+
+    def finish(self) -> None:
+        """Stop after the current image and wait; re-raise what went wrong in the helper."""
+        self.stop.set()
+        if self.thread is not None:
+            self.thread.join()
+        if self.failure is not None:
+            raise self.failure
 
 
 class _Collected:
@@ -385,7 +479,7 @@ def _stream(ray, items: list[dict], worker, args: tuple, base: int, options: Ray
 
 def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
            on_error: Callable[[str, str], None], write_group, progress: bool, folder: Path | None = None,
-           described: dict[str, dict] | None = None) -> None:
+           described: dict[str, dict] | None = None, helper: _DriverHelper | None = None) -> None:
     """Count the keys the workers report as written, report failures, then check their chunks are visible here.
 
     ``described`` collects the workers' shard descriptions (``chunk -> key -> arrays``).
@@ -397,9 +491,13 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
     bar = tqdm(total=total, unit=unit, desc=desc, disable=not progress, dynamic_ncols=True)
     start, first, received, done = time.monotonic(), None, 0, 0
     chunks: set[str] = set()
+    if helper is not None:
+        helper.start(bar)
     try:
         for batch in batches:
             if first is None:
+                if helper is not None:  # the workers are up: the driver goes back to absorbing results
+                    helper.finish()
                 first, cpu0 = time.monotonic(), time.process_time()  # from here on the driver only absorbs results
             received += len(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))
             for key, error, chunk, fatal, meta in zip(batch["key"], batch["error"], batch["chunk"], batch["fatal"],
@@ -408,21 +506,35 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
                     raise SekdError(str(error))
                 if error:
                     on_error(str(key), str(error))
+                elif chunk == BY_DRIVER:
+                    continue  # counted by the driver's helper
                 else:
                     chunks.add(str(chunk))
                     if meta and described is not None:
                         described.setdefault(str(chunk), {})[str(key)] = json.loads(str(meta))
-            done += len(batch["key"])
-            bar.update(len(batch["key"]))
-        _check_visible(folder or parts.root, chunks)
+            fresh = int(sum(1 for chunk in batch["chunk"] if chunk != BY_DRIVER))
+            done += fresh
+            bar.update(fresh)
+        if helper is not None:
+            helper.finish()  # a run so short that no worker result came back
+            for key, error in helper.errors:
+                on_error(key, error)
+        _check_visible(folder or parts.root, chunks - {""})
     except KeyboardInterrupt:
         bar.close()
+        if helper is not None:
+            helper.stop.set()
+            if helper.thread is not None:
+                helper.thread.join()
         saved = ff.merge_parts(output, parts, write_group=write_group)
         raise Interrupted(f"interrupted: {saved} more {'images' if unit == 'img' else unit + 's'} saved in {output}; "
                           "run the same command again to resume") from None
     finally:
         bar.close()
     end = time.monotonic()
+    if helper is not None and helper.done:
+        logger.info("Ray: the driver extracted %d of the %d images itself while the workers started; the workers "
+                    "the other %d", helper.done, total, done)
     if first is not None:
         cpu = time.process_time() - cpu0
         logger.info("Ray: %d %ss in %.1f s (first after %.1f s: worker start-up; then %.2f %s/s); driver received "
@@ -452,6 +564,31 @@ def _check_visible(folder: Path, chunks: set[str], wait: float = 10.0) -> None:
                         "mounted at the same path on every node")
 
 
+def _claims_path(output: Path) -> Path:
+    """This run's claims file (``_DriverHelper``): beside the output, named for a fresh id and the driver's PID
+    (``<output>.claims-ID.PID.tmp``: a killed driver's file is removed by the next run, ``remove_stale_temps``)."""
+    output = Path(output)
+    return output.with_name(f"{output.name}.claims-{uuid.uuid4().hex[:8]}.{os.getpid()}.tmp")
+
+
+def _on_cpu(extractor) -> bool:
+    """Whether ``extractor`` runs on the CPU (the driver's helper must compute exactly what CPU workers do)."""
+    device = getattr(getattr(extractor, "model", None), "device", None) or getattr(extractor, "device", "cpu")
+    return str(device) == "cpu"
+
+
+def torch_threads() -> int:
+    import torch
+
+    return torch.get_num_threads()
+
+
+def set_torch_threads(count: int) -> None:
+    import torch
+
+    torch.set_num_threads(count)
+
+
 def _driver_config(config, extractor):
     """The configuration workers build: ``auto`` precision and relative paths resolved on the driver."""
     weights = str(Path(config.weights).resolve()) if config.weights else None
@@ -479,19 +616,26 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
         tqdm.write(f"warning: {error}; skipped")
 
     ray, owned = _connect(options)
+    claims = _claims_path(output)
+    helper = None
+    if options.driver_helps and not options.gpus_per_worker and _on_cpu(extractor):
+        helper = _DriverHelper(Path(image_dir), todo, extractor, config, parts, claims, options.threads_per_worker)
+    threads = torch_threads()
     try:
         args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker,
-                str(Path(output).resolve()), options.merge)
+                str(Path(output).resolve()), options.merge, str(claims.resolve()) if helper else "")
         results = _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
         folder = shards.shard_root(output) if options.merge == "virtual" else None
-        described: dict[str, dict] = {}
+        shard_meta: dict[str, dict] = {}
         try:
             _drain(results, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None,
-                   progress, folder, described)
+                   progress, folder, shard_meta, helper)
         finally:  # also when interrupted: the merge then references these shards without opening them
-            if described:
-                shards.write_manifest(output, described)
+            if shard_meta:
+                shards.write_manifest(output, shard_meta)
     finally:
+        claims.unlink(missing_ok=True)
+        set_torch_threads(threads)
         if owned:
             ray.shutdown()
     order = {key: i for i, key in enumerate(todo)}

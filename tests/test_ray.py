@@ -243,7 +243,10 @@ def test_driver_killed_mid_run_resumes_without_redoing(cluster, photos_320, tmp_
     done = int(re.findall(r"24 images, (\d+) already done", rerun.stderr)[-1])
     assert done >= len(kept)  # nothing written before the kill is computed again
     if done < 24:  # (tasks in flight at the kill may all have finished: then nothing is left to do)
-        assert re.search(rf"Ray: {24 - done} imgs in ", rerun.stderr), rerun.stderr[-2000:]
+        helped = re.findall(r"the driver extracted (\d+) of the (\d+) images itself", rerun.stderr)
+        by_driver = int(helped[-1][0]) if helped else 0  # while the workers start (cluster._DriverHelper)
+        assert not helped or int(helped[-1][1]) == 24 - done
+        assert re.search(rf"Ray: {24 - done - by_driver} imgs in ", rerun.stderr), rerun.stderr[-2000:]
     assert _contents(out) == local
 
 
@@ -402,3 +405,30 @@ def test_no_cluster_at_the_address_is_one_error_line(tmp_path):
     result = CliRunner().invoke(sekd, ["extract", str(images), "--executor", "ray", "--ray-address", "headnode"])
     assert result.exit_code == 1 and "expected HOST:PORT" in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["images"]  # refused before anything was written
+
+
+def test_worker_skips_the_images_the_driver_claimed(local_run, tmp_path):
+    """While workers start, the driver extracts from the end of the list; a worker skips those keys."""
+    import torch
+
+    from sekd_sfm.cluster import BY_DRIVER, _claims_path, _driver_config, _ExtractWorker
+    from sekd_sfm.extract import describe_config
+    from sekd_sfm.features import build_extractor
+
+    images, _, _, _ = local_run
+    config, threads = FeatureConfig(resize_max=160, max_keypoints=300), torch.get_num_threads()
+    out = tmp_path / "features.h5"
+    claims = _claims_path(out)
+    keys = sorted(p.name for p in images.iterdir() if p.name != "broken.jpg")
+    claims.write_text(f"{keys[-1]}\n{keys[-2]}\n")
+    try:
+        extractor, info = build_extractor(config)
+        worker = _ExtractWorker(str(images), _driver_config(config, extractor), describe_config(config, extractor, info),
+                                1, str(out), "copy", str(claims))
+        back = worker({"key": np.array(keys, dtype=object)})
+    finally:
+        torch.set_num_threads(threads)
+    by_key = dict(zip(back["key"], back["chunk"]))
+    assert sorted(by_key) == keys and not any(back["error"])
+    assert [k for k, c in by_key.items() if c == BY_DRIVER] == sorted(keys[-2:])  # counted by the driver, not here
+    assert claims.name.startswith("features.h5.claims-") and claims.name.endswith(f".{os.getpid()}.tmp")
