@@ -100,37 +100,14 @@ print("images differing between local (2 threads) and local --num-threads 1:",
       len({k.split("/")[0] for k in one if one[k] != default.get(k)}))
 EOF
 
-# Driver capacity. Workers write their results as part chunks themselves (one chunk per task
-# of 4 images) and send the driver only keys, so the driver's costs are: (1) absorbing key rows
-# from Ray Data (identity workers returning key rows, no model: the whole driver side of a run
-# with free workers; CPU of the driver process per row, Ray's threads included), and (2) the
-# final merge of the chunks into the HDF5 file, measured on the arrays of local1.h5 written
-# as 4-image chunks (what the workers write; their writing time is given too: it is spread
-# over the workers).
-python - "$OUT/local1.h5" "$OUT/merge" <<'EOF' | tee -a "$REPORT"
-import shutil, sys, time
-from pathlib import Path
-import h5py
-from sekd_sfm import featurefile as ff
-src, work = Path(sys.argv[1]), Path(sys.argv[2])
-shutil.rmtree(work, ignore_errors=True); work.mkdir()
-items = [(k, ff.read_features(src, k)) for k in ff.list_keys(src)]
-mb = sum(a.nbytes for _, arrays in items for a in arrays.values()) / 1e6
-out = work / "merged.h5"
-ff.create_empty(out, dict(h5py.File(src, "r").attrs))
-parts = ff.PartStore(out, max_items=4, max_seconds=1e9, writer="bench")
-t0 = time.perf_counter()
-for key, arrays in items:
-    parts.save(key, arrays)
-parts.flush()
-t1 = time.perf_counter()
-ff.merge_parts(out, parts)
-t2 = time.perf_counter()
-n = len(items)
-print(f"merge: {n} results, {mb:.1f} MB ({mb / n:.2f} MB each), {len(range(0, n, 4))} chunks of 4")
-print(f"merge: workers writing 4-image chunks {n / (t1 - t0):.0f} items/s ({mb / (t1 - t0):.0f} MB/s, one process); "
-      f"driver's final merge into HDF5 {n / (t2 - t1):.0f} items/s ({mb / (t2 - t1):.0f} MB/s)")
-EOF
+# Driver capacity. Workers write their results themselves (one part chunk, or with
+# --ray-merge virtual one shard, per task of 4 images) and send the driver only keys, so the
+# driver's costs are: (1) the final merge into the HDF5 file, copy against virtual, measured
+# on local1.h5's arrays repeated to 2,000 images (pipelines/bench_merge.py; the workers'
+# writing time is given too: it is spread over the workers), and (2) absorbing key rows from
+# Ray Data (identity workers returning key rows, no model: the whole driver side of a run
+# with free workers; CPU of the driver process per row, Ray's threads included).
+python "$(dirname "$0")/bench_merge.py" "$OUT/local1.h5" --images 2000 --work "$OUT/merge" | tee -a "$REPORT"
 
 RAY_BACKEND_LOG_LEVEL=fatal ip netns exec "$NS" python - "127.0.0.1:$PORT" <<'EOF' | tee -a "$REPORT"
 import logging, pickle, sys, time
