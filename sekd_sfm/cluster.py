@@ -394,12 +394,12 @@ class _DriverHelper:
         except BaseException as exc:  # noqa: BLE001 - reported by the driver's thread in finish()
             self.failure = exc
 
-    def finish(self) -> None:
-        """Stop after the current image and wait; re-raise what went wrong in the helper."""
+    def finish(self, reraise: bool = True) -> None:
+        """Stop after the current image and wait; re-raise what went wrong in the helper (with ``reraise``)."""
         self.stop.set()
         if self.thread is not None:
             self.thread.join()
-        if self.failure is not None:
+        if reraise and self.failure is not None:
             raise self.failure
 
 
@@ -479,10 +479,10 @@ def _stream(ray, items: list[dict], worker, args: tuple, base: int, options: Ray
 
 def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
            on_error: Callable[[str, str], None], write_group, progress: bool, folder: Path | None = None,
-           described: dict[str, dict] | None = None, helper: _DriverHelper | None = None) -> None:
+           shard_meta: dict[str, dict] | None = None, helper: _DriverHelper | None = None) -> None:
     """Count the keys the workers report as written, report failures, then check their chunks are visible here.
 
-    ``described`` collects the workers' shard descriptions (``chunk -> key -> arrays``).
+    ``shard_meta`` collects the workers' shard descriptions (``chunk -> key -> arrays``).
 
     Logs the driver's load: the bytes it received per result, and the CPU time of the driver
     process (its Ray threads included) per result, i.e. how many results per second it could
@@ -510,8 +510,8 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
                     continue  # counted by the driver's helper
                 else:
                     chunks.add(str(chunk))
-                    if meta and described is not None:
-                        described.setdefault(str(chunk), {})[str(key)] = json.loads(str(meta))
+                    if meta and shard_meta is not None:
+                        shard_meta.setdefault(str(chunk), {})[str(key)] = json.loads(str(meta))
             fresh = int(sum(1 for chunk in batch["chunk"] if chunk != BY_DRIVER))
             done += fresh
             bar.update(fresh)
@@ -523,9 +523,7 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
     except KeyboardInterrupt:
         bar.close()
         if helper is not None:
-            helper.stop.set()
-            if helper.thread is not None:
-                helper.thread.join()
+            helper.finish(reraise=False)  # its saved images go into this merge
         saved = ff.merge_parts(output, parts, write_group=write_group)
         raise Interrupted(f"interrupted: {saved} more {'images' if unit == 'img' else unit + 's'} saved in {output}; "
                           "run the same command again to resume") from None
@@ -577,18 +575,6 @@ def _on_cpu(extractor) -> bool:
     return str(device) == "cpu"
 
 
-def torch_threads() -> int:
-    import torch
-
-    return torch.get_num_threads()
-
-
-def set_torch_threads(count: int) -> None:
-    import torch
-
-    torch.set_num_threads(count)
-
-
 def _driver_config(config, extractor):
     """The configuration workers build: ``auto`` precision and relative paths resolved on the driver."""
     weights = str(Path(config.weights).resolve()) if config.weights else None
@@ -620,7 +606,11 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
     helper = None
     if options.driver_helps and not options.gpus_per_worker and _on_cpu(extractor):
         helper = _DriverHelper(Path(image_dir), todo, extractor, config, parts, claims, options.threads_per_worker)
-    threads = torch_threads()
+    import torch
+
+    from .runtime import set_num_threads
+
+    threads = torch.get_num_threads()  # the helper switches to the workers' count; restored below
     try:
         args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker,
                 str(Path(output).resolve()), options.merge, str(claims.resolve()) if helper else "")
@@ -635,7 +625,7 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
                 shards.write_manifest(output, shard_meta)
     finally:
         claims.unlink(missing_ok=True)
-        set_torch_threads(threads)
+        set_num_threads(threads)
         if owned:
             ray.shutdown()
     order = {key: i for i, key in enumerate(todo)}

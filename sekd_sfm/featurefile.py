@@ -51,7 +51,7 @@ import numpy as np
 
 from . import shards
 from .errors import Interrupted, SekdError
-from .fsio import fsync_replace, temp_name
+from .fsio import fsync_replace, remove_folder, temp_name
 from .locking import exclusive_lock
 
 logger = logging.getLogger("sekd")
@@ -347,10 +347,7 @@ class PartStore:
     def clear(self) -> None:
         """Forget every item: the buffer and the chunk files."""
         self._buffer, self._bytes = [], 0
-        if self.root.is_dir():  # one atomic rename first, so no half-deleted store is ever seen
-            trash = temp_name(self.root)
-            os.replace(self.root, trash)
-            shutil.rmtree(trash, ignore_errors=True)
+        remove_folder(self.root)
 
 
 WriteGroup = Callable[[h5py.File, str, dict[str, np.ndarray]], None]
@@ -370,7 +367,8 @@ def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None, write_g
     parts.recover()
     chunks = parts.chunks()
     shard_files = shards.shard_files(path)
-    unlinked = shards.all_keys(path) - set(list_keys(path)) if shard_files else set()
+    described = shards.describe_all(path) if shard_files else {}  # read once: the check and the links use it
+    unlinked = {key for items in described.values() for key in items} - set(list_keys(path))
     if not chunks and not unlinked and _has_attrs(path, attrs or {}):
         parts.drop([])
         return 0
@@ -384,7 +382,7 @@ def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None, write_g
                 write_group(f, key, arrays)
                 count += 1
             if unlinked:
-                count += shards.link_shards(f, path, set(_keys_of(f)))
+                count += shards.link_shards(f, path, set(_keys_of(f)), described)
                 f.attrs[SHARDS] = json.dumps({"folder": shards.shard_root(path).name, "files": len(shard_files)})
             f.attrs.update(attrs or {})
             f.attrs["modified"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")

@@ -62,3 +62,13 @@ def write_atomic(path: str | Path, data: str | bytes, durable: bool = True) -> P
     with atomic_output(path, durable) as tmp:
         tmp.write_bytes(data.encode("utf-8") if isinstance(data, str) else data)
     return Path(path)
+
+
+def remove_folder(path: str | Path) -> None:
+    """Delete the folder ``path`` if it exists: renamed away first (one atomic step), so no reader
+    or rerun ever sees it half deleted."""
+    path = Path(path)
+    if path.is_dir():
+        trash = temp_name(path)
+        os.replace(path, trash)
+        shutil.rmtree(trash, ignore_errors=True)

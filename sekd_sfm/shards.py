@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -30,7 +29,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .fsio import temp_name
+from .errors import SekdError
+from .fsio import atomic_output, remove_folder, write_atomic
 
 logger = logging.getLogger("sekd")
 
@@ -49,53 +49,28 @@ def write_shard(output: Path, items: list[tuple[str, dict[str, np.ndarray]]], wr
                 writer: str = "") -> Path:
     """Write ``items`` (key, arrays) as one shard of ``output`` with ``write_group``; returns its path.
 
-    Durable before it is visible: written under a temporary name, fsynced, renamed, and the
-    folder fsynced, so a merge never references a shard a crash could still lose.
+    Durable before it is visible (``fsio.atomic_output``: temporary name, fsync, rename, folder
+    fsync), so a merge never references a shard a crash could still lose.
     """
-    root = shard_root(output)
-    root.mkdir(parents=True, exist_ok=True)
-    name = f"{time.time_ns():020d}-{os.getpid()}{'-' + writer if writer else ''}.h5"
-    target = root / name
-    tmp = root / f".{name}.{os.getpid()}.tmp"
-    try:
-        with h5py.File(tmp, "w") as f:
-            for key, arrays in items:
-                write_group(f, key, arrays)
-        with open(tmp, "rb+") as handle:
-            os.fsync(handle.fileno())
-        os.replace(tmp, target)
-    finally:
-        tmp.unlink(missing_ok=True)
-    _fsync_folder(root)
+    target = shard_root(output) / f"{time.time_ns():020d}-{os.getpid()}{'-' + writer if writer else ''}.h5"
+    with atomic_output(target) as tmp, h5py.File(tmp, "w") as f:
+        for key, arrays in items:
+            write_group(f, key, arrays)
     return target
 
 
-def _fsync_folder(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:  # some file systems do not open folders: the rename is as durable as they make it
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def shard_files(output: Path) -> list[Path]:
-    """Complete shards of ``output``, oldest first (temporaries of writers are skipped)."""
+    """Complete shards of ``output``, oldest first (writers' temporaries, ``*.h5.<pid>.tmp``, are not)."""
     root = shard_root(output)
-    if not root.is_dir():
-        return []
-    return sorted(p for p in root.glob("*.h5") if not p.name.startswith("."))
+    return sorted(root.glob("*.h5")) if root.is_dir() else []
 
 
 def describe(path: Path) -> dict[str, dict]:
     """What a merge needs to reference a shard's items without opening it: ``key -> {array: [shape, dtype, attrs]}``.
 
     ``shape`` is a list, ``dtype`` numpy's ``str`` (e.g. ``"<f4"``), ``attrs`` the array's
-    attributes (JSON values). Ray workers send this with their keys (``link_shards``'s ``known``).
+    attributes (JSON values). Ray workers send this with their keys; the driver saves it as a
+    manifest (``write_manifest``), so merges need not open the shards.
     """
     items: dict[str, dict] = {}
 
@@ -110,15 +85,8 @@ def describe(path: Path) -> dict[str, dict]:
     return items
 
 
-def shard_keys(path: Path) -> list[str]:
-    """Item keys of one shard (groups holding arrays: ``a/b.jpg`` for nested keys)."""
-    return list(describe(path))
-
-
 def write_manifest(output: Path, described: dict[str, dict]) -> Path:
     """Save ``shard name -> describe()`` (what Ray workers reported) beside the shards, atomically; returns its path."""
-    from .fsio import write_atomic
-
     path = shard_root(output) / f"{MANIFEST}{time.time_ns():020d}-{os.getpid()}.json"
     return write_atomic(path, json.dumps(described, separators=(",", ":")))
 
@@ -134,10 +102,10 @@ def _manifests(output: Path) -> dict[str, dict]:
     return known
 
 
-def _described(output: Path, known: dict[str, dict] | None) -> dict[str, dict]:
-    """``shard name -> describe()`` of every shard of ``output``: from ``known`` or the manifests where
-    they describe it, else read from the shard itself."""
-    known = {**_manifests(output), **(known or {})}
+def describe_all(output: Path) -> dict[str, dict]:
+    """``shard name -> describe()`` of every shard of ``output``: from the manifests where they
+    describe it, else read from the shard itself (unreadable shards are left out, with a warning)."""
+    known = _manifests(output)
     out = {}
     for path in shard_files(output):
         if path.name in known:
@@ -150,24 +118,23 @@ def _described(output: Path, known: dict[str, dict] | None) -> dict[str, dict]:
     return out
 
 
-def all_keys(output: Path, known: dict[str, dict] | None = None) -> set[str]:
+def all_keys(output: Path) -> set[str]:
     """Keys held by any shard of ``output`` (unreadable shards are skipped with a warning; their items are redone)."""
-    return {key for items in _described(output, known).values() for key in items}
+    return {key for items in describe_all(output).values() for key in items}
 
 
-def link_shards(f: h5py.File, output: Path, present: set[str], known: dict[str, dict] | None = None) -> int:
+def link_shards(f: h5py.File, output: Path, present: set[str], described: dict[str, dict]) -> int:
     """Reference, in the open output file ``f``, every shard item whose key is not in ``present``; returns the count.
 
-    Each array becomes a virtual dataset of the same path, shape and dtype mapping the
-    shard's array (source path relative to the output's folder), with the array's
-    attributes. ``known``: ``shard name -> describe()`` already at hand (sent by the Ray
-    workers), so those shards are not opened: the merge then costs a few HDF5 metadata
-    writes per image and no reads. Float arrays are NaN-filled, integer ones -1-filled, so
-    a missing shard is detectable (``check_present``).
+    ``described`` is ``describe_all(output)``. Each array becomes a virtual dataset of the
+    same path, shape and dtype mapping the shard's array (source path relative to the
+    output's folder), with the array's attributes: a few HDF5 metadata writes per image, no
+    array read. Float arrays are NaN-filled, integer ones -1-filled, so a missing shard is
+    detectable (``check_present``).
     """
     count = 0
     relative = shard_root(output).name
-    for name, items in _described(output, known).items():
+    for name, items in described.items():
         source = f"{relative}/{name}".encode()
         for key, arrays in items.items():
             if key in present:
@@ -201,9 +168,7 @@ def _link_group(f: h5py.File, key: str, arrays: dict[str, list], source_file: by
 
 
 def check_present(key: str, arrays: dict[str, np.ndarray], output: Path) -> None:
-    """OSError-free check that virtual arrays were found: NaN keypoints mean the shard file is missing."""
-    from .errors import SekdError
-
+    """SekdError when the arrays of ``key`` read as the fill value: NaN keypoints mean its shard file is missing."""
     keypoints = arrays.get("keypoints")
     if keypoints is not None and keypoints.size and np.isnan(keypoints).any():
         raise SekdError(f"{output}: the arrays of '{key}' are in a shard file that is missing; keep the folder "
@@ -212,8 +177,4 @@ def check_present(key: str, arrays: dict[str, np.ndarray], output: Path) -> None
 
 def clear(output: Path) -> None:
     """Delete every shard of ``output`` (after a new, empty output replaced the one that referenced them)."""
-    root = shard_root(output)
-    if root.is_dir():
-        trash = temp_name(root)
-        os.replace(root, trash)
-        shutil.rmtree(trash, ignore_errors=True)
+    remove_folder(shard_root(output))

@@ -744,14 +744,15 @@ def layout_scene(config: SceneConfig) -> Layout:
     faces = build_faces(block, rng, len(texture_paths), textures.sizes)
     centers = np.array([camera.center for camera in cameras[::4]])
     apparent = apparent_size(faces, centers)
-    upright = [i for i, face in enumerate(faces) if abs(face.normal[2]) <= 0.5]  # facades and towers: photos
+    ground = [abs(face.normal[2]) > 0.5 for face in faces]
+    upright = [i for i, flat in enumerate(ground) if not flat]  # facades and towers: photos
     assign_textures([faces[i] for i in upright], textures.sizes[:len(texture_paths)],
                     np.random.default_rng([config.seed, 3]), cells, priority=apparent[upright])
-    for i, face in enumerate(faces):  # pavement: a generated texture of its own
-        if abs(face.normal[2]) > 0.5:
-            width, height = round(face.width * PAVEMENT_TEXELS), round(face.height * PAVEMENT_TEXELS)
-            face.texture = textures.add_pavement(width, height, (config.seed, 4, i))
-            face.crop, face.mirror = (0, 0, width, height), False
+    for i in (i for i, flat in enumerate(ground) if flat):  # pavement: a generated texture of its own
+        face = faces[i]
+        width, height = round(face.width * PAVEMENT_TEXELS), round(face.height * PAVEMENT_TEXELS)
+        face.texture = textures.add_pavement(width, height, (config.seed, 4, i))
+        face.crop, face.mirror = (0, 0, width, height), False
     distractor_slots = set(rng.choice(config.num_images, num_distractors, replace=False).tolist())
     names = [f"{i:05d}.jpg" for i in range(config.num_images)]
     return Layout(block, faces, cameras, textures, pool, names, distractor_slots, apparent)
