@@ -17,7 +17,10 @@ from sekd_sfm.bench.scale.scene import (
     SceneConfig,
     SurfaceView,
     Textures,
+    GRAIN_SCALE,
     MIN_TEXTURED,
+    add_grain,
+    grain_texture,
     apparent_size,
     assign_textures,
     pavement_texture,
@@ -98,15 +101,46 @@ def test_covisibility_counts_are_symmetric_shared_points():
     assert seen.tolist() == [3, 3, 1]
 
 
-def test_mirrored_face_is_the_left_right_flip_of_the_straight_one(tmp_path):
+def test_grain_is_unit_noise_unique_and_repeatable():
+    a = grain_texture(300, 200, np.random.default_rng([0, 5, 1]))
+    assert a.shape == (200, 300, 1) and a.dtype == np.uint8
+    noise = (a.astype(np.float32) - 128) / GRAIN_SCALE
+    assert abs(float(noise.mean())) < 0.02 and 0.97 < float(noise.std()) < 1.03
+    assert np.array_equal(a, grain_texture(300, 200, np.random.default_rng([0, 5, 1])))
+    assert not np.array_equal(a, grain_texture(300, 200, np.random.default_rng([0, 5, 2])))
+    # Structure down to 3 texels: neighbouring texels differ, texels 30 apart are nearly independent.
+    assert np.corrcoef(noise[:, :-30].ravel(), noise[:, 30:].ravel())[0, 1] < 0.5
+
+
+def test_add_grain_hand_computed():
+    # Unit noise +1 and -1 (128 +- 32): moves of 1 x (0.06 x brightness + 6) grey levels.
+    image = np.array([[[0, 0, 0], [100, 100, 100], [250, 250, 250]]], np.uint8)
+    grain = np.array([[160, 96, 160]], np.uint8)
+    assert add_grain(image, grain)[0, :, 0].tolist() == [6, 88, 255]  # 0 + 6; 100 - 12; 250 + 21 clipped
+
+
+def test_generated_textures_beyond_the_budget_are_dropped_and_made_again_identically(monkeypatch):
+    textures = Textures([])
+    monkeypatch.setattr(Textures, "GENERATED_BYTES", 2 * 100 * 100 * 4 // 3 + 1)  # about two grain pyramids
+    ids = [textures.add_generated("grain", 100, 100, (0, 5, k)) for k in range(3)]
+    first = textures.level(ids[0], 0).copy()
+    textures.level(ids[1], 0), textures.level(ids[2], 0)
+    assert ids[0] not in textures._cache and ids[2] in textures._cache  # the least recently used went
+    assert np.array_equal(textures.level(ids[0], 0), first)
+
+
+def test_grain_follows_the_surface_between_views(tmp_path):
+    # The grain is a texture of the face: a point of the wall shows the same grain in two photos.
     textures = _two_colour_texture(tmp_path)
-    straight, mirrored = _wall(-1.0, -0.5, 5.0, 2.0, 1.0), _wall(-1.0, -0.5, 5.0, 2.0, 1.0)
-    mirrored.mirror = True
-    a, ids = render(CAMERA, [straight], textures)
-    b, _ = render(CAMERA, [mirrored], textures)
-    assert tuple(a[60, 70]) == (0, 0, 255) and tuple(b[60, 70]) == (255, 0, 0)  # red left -> blue left
-    cols = np.flatnonzero(ids[60] == 0)  # 60..99: the flip maps column c to 159 - c around the centre 79.5
-    assert np.array_equal(a[50:70, cols], b[50:70, cols[::-1]])
+    wall = _wall(-4.0, -3.0, 10.0, 8.0, 6.0)
+    wall.grain = textures.add_generated("grain", 512, 384, (0, 5, 0))
+    a, _ = render(CAMERA, [wall], textures)
+    b, _ = render(Camera(K, np.eye(3), np.array([-0.8, 0, 0]), 160, 120), [wall], textures)  # 0.8 m right = 8 px at 10 m
+    plain, _ = render(CAMERA, [_wall(-4.0, -3.0, 10.0, 8.0, 6.0)], textures)
+    # The wall spans columns 40..119, rows 30..89 in a; b sees it 8 px further left.
+    part_a, part_b = a[32:88, 50:110].astype(float), b[32:88, 42:102].astype(float)
+    assert np.abs(part_a - part_b).mean() < 1.0
+    assert (a[32:88, 42:118] != plain[32:88, 42:118]).any(axis=2).mean() > 0.5  # the grain is there
 
 
 def _view(camera: Camera, faces: list[Face], tmp_path: Path) -> SurfaceView:
@@ -145,7 +179,6 @@ def test_assign_textures_gives_every_face_its_own_region():
     assign_textures(faces, sizes, np.random.default_rng(0))
     keys = [(f.texture, f.crop[0] // (sizes[f.texture][0] // 3), f.crop[1] // (sizes[f.texture][1] // 3)) for f in faces]
     assert len(set(keys)) == len(faces)  # 2 photos x 3 x 3 tiles = 18 slots, each used at most once
-    assert not any(f.mirror for f in faces)  # mirrored copies match their originals: never used
     for f in faces:
         x, y, w, h = f.crop
         tw, th = sizes[f.texture][0] // 3, sizes[f.texture][1] // 3

@@ -9,8 +9,15 @@ never one region twice while the photos last; the faces that fill most of a view
 whole photos first, far towers and side walls the finer tiles; every crop at least 70 %
 textured, so no photo of the walk sees only sky or a black screen) with its own colour
 gain, and every pavement tile its own generated texture (``pavement_texture``), so no two
-faces share content: repeated content (even mirrored, see ``MIRRORS``) would hand retrieval
-and matching look-alikes that no real street has this often. The camera walks once around the block (one photo every ``spacing`` m, 6-9 m from the
+faces share content: repeated content (even mirrored: symmetric structures match across the
+mirror) would hand retrieval and matching look-alikes that no real street has this often.
+Every facade also carries a surface grain of its own (``grain_texture``, ``GRAIN_TEXELS``
+per metre, multiplied onto the photo): the fixed pool of photos cannot texture a long walk at
+the camera's resolution (at 1,000 photos the median facade gets 22 photo texels per metre,
+the photos see 74 pixels per metre), and a photo magnified three to seven times is a blank
+wall to any local feature, unlike a real facade photographed from the street.
+
+The camera walks once around the block (one photo every ``spacing`` m, 6-9 m from the
 facades, 1.5-1.7 m high), looking at the buildings with small yaw / pitch / roll jitter,
 and each photo gets its own exposure (gain and gamma) and sensor noise. A few unrelated
 photos (distractors, never used as textures) are mixed in at random positions.
@@ -49,6 +56,7 @@ import json
 import logging
 import math
 import time
+from collections import OrderedDict
 from dataclasses import asdict, dataclass, field
 from itertools import pairwise
 from pathlib import Path
@@ -60,7 +68,7 @@ from tqdm import tqdm
 from ...errors import SekdError
 
 logger = logging.getLogger("sekd")
-FORMAT = "sekd-scale-scene/4"
+FORMAT = "sekd-scale-scene/5"
 NEAR = 0.1          # near clipping plane (m)
 MAX_RANGE = 90.0    # faces farther than this are not drawn (m); they would be a few pixels
 DISTRACTOR_POOL = 32  # photos set aside as distractors, never used as textures
@@ -109,7 +117,7 @@ class Face:
     texture: int                    # index into the texture photo list
     crop: tuple[int, int, int, int]  # x, y, w, h in the photo (level-0 pixels)
     gain: tuple[float, float, float]  # BGR colour gain
-    mirror: bool = False            # texture drawn left-right mirrored (another texture for local features)
+    grain: int = -1                 # index of its surface grain texture (``GRAIN_TEXELS`` per metre), -1: none
     normal: np.ndarray = field(init=False)
 
     def __post_init__(self):
@@ -249,13 +257,17 @@ TEXTURED_GRADIENT = 2.0
 #: camera chain for a reason no benchmark of scale should measure.
 MIN_TEXTURED = 0.7
 TEXTURE_CELL = 16
-#: Texture copies per photo region: straight only. A mirrored copy looked like a second
-#: texture, but left-right symmetric structures still match across it: on a 250-photo block
-#: photos of a face and of its mirrored twin 40 m away verified with 15-37 inliers (SEKD and
-#: SIFT alike), and those false links stopped both pipelines' maps halfway.
-MIRRORS = (False,)
 #: Texels per metre of the generated pavement textures (about the facades' median).
 PAVEMENT_TEXELS = 48
+#: Texels per metre of the facades' surface grain: near the photos' 74 pixels per metre at the
+#: walk's mean distance, so the grain is sharp where the photo textures are magnified.
+GRAIN_TEXELS = 64
+#: The grain's standard deviation in grey levels is GRAIN_CONTRAST x brightness + GRAIN_FLOOR
+#: (6 % of the brightness, plus 6 levels that dark paint still shows in daylight): weaker than
+#: the photo textures' own structure, stronger than the sensor noise (2 levels).
+GRAIN_CONTRAST, GRAIN_FLOOR = 0.06, 6.0
+#: Grain textures store 128 + GRAIN_SCALE x a unit-variance noise (clipped at 4 standard deviations).
+GRAIN_SCALE = 32.0
 
 
 def texture_cells(photo: np.ndarray, cell: int = TEXTURE_CELL) -> np.ndarray:
@@ -278,26 +290,24 @@ def textured_fraction(cells: np.ndarray, crop: tuple[int, int, int, int], cell: 
     return float((block >= TEXTURED_GRADIENT).mean()) if block.size else 1.0
 
 
-def _tile_slots(num_faces: int, num_photos: int, rng: np.random.Generator, slack: float) -> list[tuple[int, int, int, int, bool]]:
-    """(photo, grid, row, col, mirror) tiles, largest first, enough for ``slack`` x ``num_faces``.
+def _tile_slots(num_faces: int, num_photos: int, rng: np.random.Generator, slack: float) -> list[tuple[int, int, int, int]]:
+    """(photo, grid, row, col) tiles, largest first, enough for ``slack`` x ``num_faces``.
 
-    Every (photo, mirror) "sheet" is cut into a g x g grid; the coarsest g that gives enough
-    tiles, with only as many sheets cut one level finer (g + 1) as needed: textures stay as
-    large (as sharp) as the pool allows, instead of every sheet dropping to the finer grid.
+    Every photo is cut into a g x g grid; the coarsest g that gives enough tiles, with only as
+    many photos cut one level finer (g + 1) as needed: textures stay as large (as sharp) as the
+    pool allows, instead of every photo dropping to the finer grid.
     """
-    sheets = [(p, m) for p in range(num_photos) for m in MIRRORS]
-    order = rng.permutation(len(sheets))
+    order = rng.permutation(num_photos)
     need = math.ceil(num_faces * slack)
     g = 1
-    while g < 16 and len(sheets) * (g + 1) ** 2 < need:
+    while g < 16 and num_photos * (g + 1) ** 2 < need:
         g += 1  # at 16 x 16 tiles of a few dozen texels carry no features: stop refining
-    finer = 0 if len(sheets) * g * g >= need or g == 16 else \
-        min(len(sheets), math.ceil((need - len(sheets) * g * g) / ((g + 1) ** 2 - g * g)))
+    finer = 0 if num_photos * g * g >= need or g == 16 else \
+        min(num_photos, math.ceil((need - num_photos * g * g) / ((g + 1) ** 2 - g * g)))
     coarse, fine = [], []
-    for rank, index in enumerate(order):
-        photo, mirror = sheets[index]
+    for rank, photo in enumerate(order.tolist()):
         grid = g + 1 if rank < finer else g
-        tiles = [(photo, grid, r, c, mirror) for r in range(grid) for c in range(grid)]
+        tiles = [(photo, grid, r, c) for r in range(grid) for c in range(grid)]
         (fine if grid > g else coarse).extend(tiles)
     shuffle = rng.permutation
     return [coarse[i] for i in shuffle(len(coarse))] + [fine[i] for i in shuffle(len(fine))]
@@ -324,7 +334,7 @@ def assign_textures(faces: list[Face], sizes: list[tuple[int, int]], rng: np.ran
                     priority: np.ndarray | None = None) -> list[Face]:
     """Give every face its own texture region, in place; returns ``faces``.
 
-    Photos (``sizes``: width, height), each usable once per ``MIRRORS`` entry, are cut into tiles
+    Photos (``sizes``: width, height) are cut into tiles
     (``_tile_slots``); faces in decreasing ``priority`` (default: area; ``apparent_size``
     in a scene) take the largest tiles first, each tile used once while
     they last (then reused, with a warning). A face's crop is the largest region of its own
@@ -344,11 +354,11 @@ def assign_textures(faces: list[Face], sizes: list[tuple[int, int]], rng: np.ran
             if next_slot >= len(slots):
                 logger.warning("scene: %d faces for %d texture tiles; tiles are reused", len(faces), len(slots))
                 next_slot, cells = 0, None  # reuse from the start, textured or not
-            photo, grid, row, col, mirror = slots[next_slot]
+            photo, grid, row, col = slots[next_slot]
             next_slot += 1
             crop = _crop_in_tile(face, sizes[photo], grid, row, col, rng, None if cells is None else cells[photo], tries)
             if crop is not None:
-                face.texture, face.crop, face.mirror = photo, crop, mirror
+                face.texture, face.crop = photo, crop
                 break
     return faces
 
@@ -450,27 +460,34 @@ def make_cameras(block: Block, config: SceneConfig, count: int) -> list[Camera]:
 # ----------------------------------------------------------------------------- rendering
 
 class Textures:
-    """Photos used as textures, loaded on first use, with a 3-level image pyramid each."""
+    """Texture images with a 3-level pyramid each: photos (kept once loaded) and generated
+    textures (pavement, facade grain: made on first use, deterministic for their seed, the least
+    recently used dropped beyond ``GENERATED_BYTES``; a walk meets its faces in order)."""
+
+    GENERATED_BYTES = 256 << 20
+    MAKERS = {"pavement": lambda w, h, rng: pavement_texture(w, h, rng),
+              "grain": lambda w, h, rng: grain_texture(w, h, rng)}
 
     def __init__(self, paths: list[Path]):
         self.paths: list[Path | None] = list(paths)
         self._cache: dict[int, list[np.ndarray]] = {}
-        self._generated: dict[int, tuple[int, int, tuple]] = {}
+        self._generated: dict[int, tuple[str, int, int, tuple]] = {}
+        self._recent: OrderedDict[int, int] = OrderedDict()  # generated index -> bytes, least recent first
         self.sizes = [_image_size(p) for p in paths]
 
-    def add_pavement(self, width: int, height: int, seed: tuple) -> int:
-        """Register a generated pavement texture (``pavement_texture``, made on first use); returns its index."""
+    def add_generated(self, kind: str, width: int, height: int, seed: tuple) -> int:
+        """Register a generated texture of ``kind`` (a key of ``MAKERS``), width x height texels; returns its index."""
         index = len(self.sizes)
         self.paths.append(None)
         self.sizes.append((width, height))
-        self._generated[index] = (width, height, seed)
+        self._generated[index] = (kind, width, height, seed)
         return index
 
     def level(self, index: int, level: int) -> np.ndarray:
         if index not in self._cache:
             if index in self._generated:
-                width, height, seed = self._generated[index]
-                image = pavement_texture(width, height, np.random.default_rng(list(seed)))
+                kind, width, height, seed = self._generated[index]
+                image = self.MAKERS[kind](width, height, np.random.default_rng(list(seed)))
             else:
                 image = cv2.imread(str(self.paths[index]), cv2.IMREAD_COLOR)
             if image is None:
@@ -479,19 +496,50 @@ class Textures:
             for _ in range(2):
                 pyramid.append(cv2.pyrDown(pyramid[-1]))
             self._cache[index] = pyramid
+            if index in self._generated:
+                self._recent[index] = sum(p.nbytes for p in pyramid)
+                while sum(self._recent.values()) > self.GENERATED_BYTES and len(self._recent) > 1:
+                    del self._cache[self._recent.popitem(last=False)[0]]
+        if index in self._recent:
+            self._recent.move_to_end(index)
         return self._cache[index][level]
+
+
+def _value_noise(width: int, height: int, rng: np.random.Generator, cells: tuple[int, ...],
+                 decay: float) -> np.ndarray:
+    """Zero-mean, unit-std multi-octave value noise, H x W float32: per octave a random grid of
+    ``cells`` cells along the long side, upsampled (cubic), the amplitude times ``decay`` per octave."""
+    grey = np.zeros((height, width), np.float32)
+    amplitude = 1.0
+    for n in cells:
+        grid = rng.standard_normal((max(2, height * n // max(width, height)), max(2, width * n // max(width, height))))
+        grey += amplitude * cv2.resize(grid.astype(np.float32), (width, height), interpolation=cv2.INTER_CUBIC)
+        amplitude *= decay
+    return (grey - grey.mean()) / max(float(grey.std()), 1e-6)
+
+
+def grain_texture(width: int, height: int, rng: np.random.Generator) -> np.ndarray:
+    """A facade's surface grain (H x W x 1 uint8, 128 + ``GRAIN_SCALE`` x unit noise): plaster-like
+    noise from 3 texels (5 cm at ``GRAIN_TEXELS``) to a metre, unique for ``rng``. ``add_grain``
+    puts it on the face's photo texture."""
+    longest = max(width, height)
+    octaves = tuple(n for n in (longest // 64, longest // 16, longest // 6, longest // 3) if n >= 2) or (2,)
+    grey = _value_noise(width, height, rng, octaves, decay=1.0)
+    return np.clip(128 + GRAIN_SCALE * grey, 0, 255).astype(np.uint8)[..., None]
+
+
+def add_grain(image: np.ndarray, grain: np.ndarray) -> np.ndarray:
+    """``image`` (H x W x 3 uint8) + its grain (H x W uint8, ``grain_texture``): each pixel moves by
+    the unit noise x (``GRAIN_CONTRAST`` x its brightness + ``GRAIN_FLOOR``) grey levels."""
+    noise = (grain.astype(np.float32) - 128) / GRAIN_SCALE
+    image = image.astype(np.float32)
+    return np.clip(image + noise[..., None] * (GRAIN_CONTRAST * image + GRAIN_FLOOR) + 0.5, 0, 255).astype(np.uint8)
 
 
 def pavement_texture(width: int, height: int, rng: np.random.Generator) -> np.ndarray:
     """A paving texture (H x W x 3 uint8 BGR), unique for ``rng``: smooth multi-octave noise, grain,
     stones and cracks. Pavement takes no photo, so the photos go to the facades at full size."""
-    grey = np.zeros((height, width), np.float32)
-    amplitude = 1.0
-    for cells in (4, 8, 16, 32, 64):  # value noise: random grids upsampled, halving amplitude per octave
-        grid = rng.standard_normal((max(2, height * cells // max(width, height)), max(2, width * cells // max(width, height))))
-        grey += amplitude * cv2.resize(grid.astype(np.float32), (width, height), interpolation=cv2.INTER_CUBIC)
-        amplitude *= 0.6
-    grey = 128 + 22 * grey / max(float(grey.std()), 1e-6)
+    grey = 128 + 22 * _value_noise(width, height, rng, (4, 8, 16, 32, 64), decay=0.6)
     grey += rng.normal(0, 9, (height, width)).astype(np.float32)  # grain
     for _ in range(int(rng.integers(20, 60)) * width * height // (384 * 384)):  # stones: small light or dark blobs
         center = (int(rng.integers(width)), int(rng.integers(height)))
@@ -610,26 +658,39 @@ def render_layers(camera: Camera, faces: list[Face], textures: Textures,
         update = inside & (depth > 0) & (depth < roi)
         if not update.any():
             continue  # hidden behind what is drawn already
-        # Texture level: about one texel per pixel (the polygon's area against the crop's).
         area = 0.5 * abs(np.dot(pix[:, 0], np.roll(pix[:, 1], 1)) - np.dot(pix[:, 1], np.roll(pix[:, 0], 1)))
-        cx0, cy0, cw, ch = face.crop
-        level = int(np.clip(math.floor(0.5 * math.log2(max(cw * ch / max(area, 1.0), 1.0))), 0, 2))
-        scale = 2.0 ** level
-        sx, sy = face.width / cw * scale, face.height / ch * scale
-        # Texture axes: mirrored faces run the texture's x from the face's right edge leftwards.
-        tex_u, tex_origin = (-face.u, face.origin + face.u * face.width) if face.mirror else (face.u, face.origin)
-        origin = tex_origin - tex_u * (cx0 / scale) * sx - face.v * (cy0 / scale) * sy
-        H = K @ np.stack([R @ tex_u * sx, R @ face.v * sy, R @ origin + t], axis=1)
-        H = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]]) @ H
-        warped = cv2.warpPerspective(textures.level(face.texture, level), H, (bw, bh), flags=cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_REFLECT)
+        block = (x0, y0, bw, bh)
+        warped = _warp(textures, face.texture, face.crop, face, area, camera, block)
         if face.gain != (1.0, 1.0, 1.0):
             warped = cv2.multiply(warped, face.gain + (0.0,), dtype=cv2.CV_8U)
+        if face.grain >= 0:
+            grain = _warp(textures, face.grain, (0, 0, *textures.sizes[face.grain]), face, area, camera, block)
+            warped = add_grain(warped, grain)
         # np.copyto with a mask: far cheaper than boolean fancy indexing on these full-size blocks.
         np.copyto(image[y0:y1, x0:x1], warped, where=update[:, :, None])
         np.copyto(roi, depth, where=update)
         np.copyto(face_id[y0:y1, x0:x1], np.int32(index), where=update)
     return image, face_id, zbuf
+
+
+def _warp(textures: Textures, index: int, crop: tuple[int, int, int, int], face: Face, area: float,
+          camera: Camera, block: tuple[int, int, int, int]) -> np.ndarray:
+    """Texture ``index``'s region ``crop`` (x, y, w, h texels) stretched over ``face`` as ``camera``
+    sees it, in the image block (x0, y0, w, h); ``area``: the face's projected area (px^2).
+
+    The pyramid level gives about one texel per pixel (the projected area against the crop's).
+    """
+    x0, y0, bw, bh = block
+    cx0, cy0, cw, ch = crop
+    level = int(np.clip(math.floor(0.5 * math.log2(max(cw * ch / max(area, 1.0), 1.0))), 0, 2))
+    scale = 2.0 ** level
+    sx, sy = face.width / cw * scale, face.height / ch * scale
+    origin = face.origin - face.u * (cx0 / scale) * sx - face.v * (cy0 / scale) * sy
+    R, t = camera.R, camera.t
+    H = camera.K @ np.stack([R @ face.u * sx, R @ face.v * sy, R @ origin + t], axis=1)
+    H = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]]) @ H
+    return cv2.warpPerspective(textures.level(index, level), H, (bw, bh), flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_REFLECT)
 
 
 def candidate_faces(camera: Camera, centers: np.ndarray, radii: np.ndarray, origins: np.ndarray,
@@ -707,9 +768,9 @@ class Layout:
     apparent: np.ndarray            # per face, ``apparent_size`` (sr): how much of a view it can fill
 
     def texture_density(self) -> dict:
-        """Texels per metre of the facades' photo textures, quantiles weighted by apparent size, and
-        the pixels per metre of a photo at the walk's mean distance: textures sharper than the photos
-        where texels >= pixels. (The generated pavement has ``PAVEMENT_TEXELS``.)"""
+        """Texels per metre of the facades' photo textures, quantiles weighted by apparent size, of
+        their grain, and the pixels per metre of a photo at the walk's mean distance: textures
+        sharper than the photos where texels >= pixels. (The generated pavement has ``PAVEMENT_TEXELS``.)"""
         photo = [i for i, face in enumerate(self.faces) if self.textures.paths[face.texture] is not None]
         density = np.array([self.faces[i].crop[2] / self.faces[i].width for i in photo])
         weights = self.apparent[photo]
@@ -719,6 +780,7 @@ class Layout:
         camera = self.cameras[0]
         return {"texels_per_m_p10": round(quantile[0.1], 1), "texels_per_m_p50": round(quantile[0.5], 1),
                 "texels_per_m_p90": round(quantile[0.9], 1),
+                "grain_texels_per_m": GRAIN_TEXELS,
                 "pixels_per_m_at_walk_distance": round(float(camera.K[0, 0]) / self.block.distance, 1)}
 
 
@@ -751,8 +813,11 @@ def layout_scene(config: SceneConfig) -> Layout:
     for i in (i for i, flat in enumerate(ground) if flat):  # pavement: a generated texture of its own
         face = faces[i]
         width, height = round(face.width * PAVEMENT_TEXELS), round(face.height * PAVEMENT_TEXELS)
-        face.texture = textures.add_pavement(width, height, (config.seed, 4, i))
-        face.crop, face.mirror = (0, 0, width, height), False
+        face.texture, face.crop = textures.add_generated("pavement", width, height, (config.seed, 4, i)), (0, 0, width, height)
+    for i in upright:  # facades and towers: a surface grain of their own, over the photo
+        face = faces[i]
+        size = (max(2, round(face.width * GRAIN_TEXELS)), max(2, round(face.height * GRAIN_TEXELS)))
+        face.grain = textures.add_generated("grain", *size, (config.seed, 5, i))
     distractor_slots = set(rng.choice(config.num_images, num_distractors, replace=False).tolist())
     names = [f"{i:05d}.jpg" for i in range(config.num_images)]
     return Layout(block, faces, cameras, textures, pool, names, distractor_slots, apparent)
