@@ -129,6 +129,10 @@ def _import_ray():
     # arguments in the object store) that read like failures between the progress lines; the
     # cluster's log files keep them. RAY_BACKEND_LOG_LEVEL=warning shows them here again.
     os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "fatal")
+    # Ray Data's usage statistics start a cluster-lifetime actor on a cluster's first job: one
+    # more process importing Ray while the workers start (docs/cluster.md, start-up), for
+    # statistics sekd has no use for (it never sends anything anywhere). Set it to 0 to keep them.
+    os.environ.setdefault("RAY_DATA_USAGE_DISABLED", "1")
     try:
         import ray
         import ray.data  # the ray[data] extra, not only ray core

@@ -466,6 +466,7 @@ def prepare_output(path: Path, attrs: dict, parts: PartStore, overwrite: bool, c
     alone. Leftovers of killed writers are removed first. Call it holding the output's lock.
     """
     remove_stale_temps(path)
+    shards.remove_temps(path)
     if overwrite and (path.exists() or path.is_symlink()):
         check_replaceable(path, attrs["format"])
         parts.clear()  # first: old parts must never reach the new file

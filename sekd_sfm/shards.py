@@ -175,6 +175,15 @@ def check_present(key: str, arrays: dict[str, np.ndarray], output: Path) -> None
                         f"{shard_root(output).name}/ beside {Path(output).name} (they move together)")
 
 
+def remove_temps(output: Path) -> None:
+    """Delete the temporaries (``*.tmp``) of shard writers in ``<output>.shards/``: at the start of a
+    run, holding the output's lock, every one is a killed worker's (a PID check would not do:
+    the writers ran on other nodes)."""
+    root = shard_root(output)
+    for tmp in root.glob("*.tmp") if root.is_dir() else []:
+        tmp.unlink(missing_ok=True)
+
+
 def clear(output: Path) -> None:
     """Delete every shard of ``output`` (after a new, empty output replaced the one that referenced them)."""
     remove_folder(shard_root(output))

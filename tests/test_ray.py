@@ -432,3 +432,18 @@ def test_worker_skips_the_images_the_driver_claimed(local_run, tmp_path):
     assert sorted(by_key) == keys and not any(back["error"])
     assert [k for k, c in by_key.items() if c == BY_DRIVER] == sorted(keys[-2:])  # counted by the driver, not here
     assert claims.name.startswith("features.h5.claims-") and claims.name.endswith(f".{os.getpid()}.tmp")
+
+
+def test_ray_data_usage_statistics_are_off_unless_the_user_chose(monkeypatch):
+    # Ray Data's usage statistics start one more cluster-lifetime actor on a cluster's first job.
+    pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
+    from ray.data._internal.usage.collector import usage_collection_disabled
+
+    from sekd_sfm import cluster
+
+    monkeypatch.delenv("RAY_DATA_USAGE_DISABLED", raising=False)
+    cluster._import_ray()
+    assert os.environ["RAY_DATA_USAGE_DISABLED"] == "1" and usage_collection_disabled()
+    monkeypatch.setenv("RAY_DATA_USAGE_DISABLED", "0")
+    cluster._import_ray()
+    assert os.environ["RAY_DATA_USAGE_DISABLED"] == "0"  # the user's choice stands

@@ -106,6 +106,9 @@ def test_a_torn_shard_never_counts(tmp_path):
     (root / ".00001-123-x.h5.123.tmp").write_bytes(b"half a shard")  # a worker killed mid-write
     assert shards.shard_files(output) == [] and shards.all_keys(output) == set()
     assert ff.merge_parts(output, ff.PartStore(output)) == 0
+    _TaskParts(str(output), "virtual").write(_items(0, 1))
+    ff.prepare_output(output, feature_attrs(), ff.PartStore(output), overwrite=False, compare=("config",))
+    assert [p.suffix for p in root.iterdir()] == [".h5"]  # the next run removes the torn one, keeps the shard
 
 
 def test_unwritable_shard_folder_is_reported_not_raised(tmp_path):
