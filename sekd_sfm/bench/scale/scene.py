@@ -12,7 +12,7 @@ gain, and every pavement tile its own generated texture (``pavement_texture``), 
 faces share content: repeated content (even mirrored: symmetric structures match across the
 mirror) would hand retrieval and matching look-alikes that no real street has this often.
 Every facade also carries a surface grain of its own (``grain_texture``, ``GRAIN_TEXELS``
-per metre, multiplied onto the photo): the fixed pool of photos cannot texture a long walk at
+per metre, added to the photo by ``add_grain``): the fixed pool of photos cannot texture a long walk at
 the camera's resolution (at 1,000 photos the median facade gets 22 photo texels per metre,
 the photos see 74 pixels per metre), and a photo magnified three to seven times is a blank
 wall to any local feature, unlike a real facade photographed from the street.
