@@ -368,7 +368,7 @@ def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None, write_g
     chunks = parts.chunks()
     shard_files = shards.shard_files(path)
     described = shards.describe_all(path) if shard_files else {}  # read once: the check and the links use it
-    unlinked = {key for items in described.values() for key in items} - set(list_keys(path))
+    unlinked = shards.keys_of(described) - set(list_keys(path))
     if not chunks and not unlinked and _has_attrs(path, attrs or {}):
         parts.drop([])
         return 0

@@ -118,9 +118,14 @@ def describe_all(output: Path) -> dict[str, dict]:
     return out
 
 
+def keys_of(described: dict[str, dict]) -> set[str]:
+    """The item keys of ``describe_all``'s shard descriptions."""
+    return {key for items in described.values() for key in items}
+
+
 def all_keys(output: Path) -> set[str]:
     """Keys held by any shard of ``output`` (unreadable shards are skipped with a warning; their items are redone)."""
-    return {key for items in describe_all(output).values() for key in items}
+    return keys_of(describe_all(output))
 
 
 def link_shards(f: h5py.File, output: Path, present: set[str], described: dict[str, dict]) -> int:
