@@ -6,6 +6,7 @@ from pathlib import Path
 import click
 
 from .options import weights_option
+from .reconstruct import mapper_option, mapper_type_option, refine_option
 
 
 def _sizes(ctx, param, value: str) -> tuple[int, ...]:
@@ -33,9 +34,17 @@ def _sizes(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--no-baseline", is_flag=True, help="Skip pycolmap's SIFT pipeline.")
 @click.option("--num-threads", type=click.IntRange(min=1), default=None, help="CPU threads (default: all cores).")
 @click.option("--generate-only", is_flag=True, help="Only generate the scenes (OUT/n<N>/scene) and report the time.")
+@click.option("--baseline-from", type=click.Path(file_okay=False, exists=True), default=None,
+              help="An earlier `bench scale` folder: its scenes and pycolmap runs are reused where scene settings, "
+                   "pairs and pycolmap version are the same, so a variant of our pipeline costs only its own run.")
 @weights_option
+@click.option("--max-keypoints", type=click.IntRange(min=1), default=None,
+              help="Our pipeline's keypoints per photo (default: `sekd reconstruct`'s).")
+@mapper_type_option
+@mapper_option
+@refine_option
 def scale(sizes, output, image_size, spacing, seed, textures, no_baseline, num_threads, generate_only,
-          weights) -> None:
+          baseline_from, weights, max_keypoints, mapper_type, mapper, refine) -> None:
     """Our pipeline and pycolmap's SIFT pipeline on generated scenes of growing size.
 
     \b
@@ -44,14 +53,18 @@ def scale(sizes, output, image_size, spacing, seed, textures, no_baseline, num_t
     lighting changes and ~3% unrelated distractor photos. Per size and stage (extract, pairs,
     match, verify, map): wall time, peak RSS and bytes written; per pipeline: registered
     photos, registered distractors, pose AUC@5 against the true cameras; then the growth
-    exponent of each stage. `sekd reconstruct`'s defaults are used for our pipeline.
-    Finished sizes are skipped when the command is run again on the same folder.
+    exponent of each stage. Our pipeline runs with `sekd reconstruct`'s defaults unless
+    --weights, --max-keypoints, --mapper-type, --mapper or --no-refine say otherwise.
+    Finished sizes are skipped when the command is run again on the same folder with the
+    same settings; with other settings of our pipeline, only ours reruns (pycolmap's run is
+    kept when its scene and pairs are unchanged).
 
     \b
     Examples:
       sekd bench scale --sizes 50,100 -o out/scale
       sekd bench scale --sizes 250,500,1000 -o out/scale      # adds the larger sizes
       sekd bench scale --sizes 1000 --generate-only -o out/scale
+      sekd bench scale --sizes 250,500 -o out/hier --baseline-from out/scale --mapper-type hierarchical
     """
     import json
 
@@ -65,14 +78,20 @@ def scale(sizes, output, image_size, spacing, seed, textures, no_baseline, num_t
             seconds = json.loads(path.read_text())["generation_s"]
             click.echo(f"n={size}: {path.parent} ({seconds:.1f} s, {size / max(seconds, 1e-9):.1f} images/s)")
         return
-    reconstruct_config = None
-    if weights:
-        from sekd_sfm.sfm.reconstruct import ReconstructConfig
+    from sekd_sfm.sfm.mapping import mapper_options
+    from sekd_sfm.sfm.reconstruct import ReconstructConfig
 
-        reconstruct_config = ReconstructConfig()
+    if mapper_type != "auto":  # a wrong option fails now, not after the first scene (auto: per size, before its run)
+        mapper_options(list(mapper), seed, mapper_type)
+    reconstruct_config = ReconstructConfig(mapper_type=mapper_type, mapper=list(mapper), seed=seed)
+    reconstruct_config.refine.enabled = refine
+    if weights:
         reconstruct_config.features.weights = weights
+    if max_keypoints:
+        reconstruct_config.features.max_keypoints = max_keypoints
     config = ScaleConfig(sizes=sizes, image_size=image_size, spacing=spacing, seed=seed, baseline=not no_baseline,
-                         num_threads=num_threads, textures=textures)
+                         num_threads=num_threads, textures=textures,
+                         baseline_from=str(baseline_from) if baseline_from else None)
     path = run_scale_benchmark(output, config, reconstruct_config)
     click.echo((path.parent / "results.md").read_text())
     click.echo(f"results: {path}")

@@ -10,7 +10,13 @@ from sekd_sfm.features import FEATURE_TYPES
 from .match import match_options
 from .options import feature_options, runtime_options, weights_option
 from .presets import configs_from_context
-from .reconstruct import camera_options, mapper_option, mapper_type_option, seed_option
+from .reconstruct import (
+    camera_options,
+    mapper_option,
+    mapper_type_option,
+    refine_option,
+    seed_option,
+)
 
 
 @click.command()
@@ -24,6 +30,7 @@ from .reconstruct import camera_options, mapper_option, mapper_type_option, seed
 @camera_options
 @mapper_type_option
 @mapper_option
+@refine_option
 @seed_option
 @click.option("--no-baseline", is_flag=True, help="Skip pycolmap's SIFT pipeline.")
 @click.option("-m", "--method", "methods", multiple=True,
@@ -31,7 +38,7 @@ from .reconstruct import camera_options, mapper_option, mapper_type_option, seed
                    "instead of once with --feature/--weights.")
 def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel, weights,
         num_threads, device, precision, match_mode, ratio, rootsift, camera_model, camera_mode, camera_params, mapper_type, mapper,
-        seed, no_baseline, methods) -> None:
+        refine, seed, no_baseline, methods) -> None:
     """Reconstruct SCENE with our pipeline and with pycolmap's SIFT; compare with ground-truth cameras.
 
     \b
@@ -59,6 +66,7 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
         features=features_config, pairs=PairsConfig(mode="exhaustive"), matching=matching,
         camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params), mapper_type=mapper_type,
         mapper=list(mapper), seed=seed)
+    config.refine.enabled = refine
     report = benchmark_sfm(scene, output or Path(f"bench-sfm-{Path(scene).name}"), config, baseline=not no_baseline,
                            num_threads=num_threads, methods=available([parse_method(m) for m in methods]))
     from sekd_sfm.bench.sfm import sfm_markdown

@@ -49,7 +49,11 @@ def _print_option_help(ctx: click.Context, param: click.Parameter, values) -> tu
     if param.name == "mapper":  # the options of the chosen mapper (--mapper-type is eager: already parsed)
         from sekd_sfm.sfm.mapping import default_options
 
-        options = default_options(ctx.params.get("mapper_type") or "incremental")
+        kind = ctx.params.get("mapper_type") or "auto"
+        if kind == "auto":
+            click.echo("# --mapper-type auto: these options up to 250 photos (incremental); above, those of "
+                       "`--mapper-type hierarchical --mapper help`")
+        options = default_options("incremental" if kind == "auto" else kind)
     else:
         options = pycolmap.TwoViewGeometryOptions()
     for name in option_names(options):
@@ -68,11 +72,17 @@ mapper_option = click.option(
          "is an error before any work. The mapper runs on one thread, the only way COLMAP repeats a model "
          "for a --seed; num_threads=-1 uses all cores (faster on large scenes).")
 mapper_type_option = click.option(
-    "--mapper-type", type=click.Choice(("incremental", "global", "hierarchical")), default="incremental",
+    "--mapper-type", type=click.Choice(("auto", "incremental", "global", "hierarchical")), default="auto",
     show_default=True, is_eager=True,  # eager: `--mapper help` lists the options of this type
-    help="incremental: COLMAP's mapper, one image at a time; global: GLOMAP (rotation averaging + global "
-         "positioning, all cameras at once); hierarchical: clusters mapped incrementally, then merged "
-         "(for thousands of photos).")
+    help="auto: incremental up to 250 photos, hierarchical above; incremental: COLMAP's mapper, one image at "
+         "a time; global: GLOMAP (rotation averaging + global positioning, all cameras at once); "
+         "hierarchical: clusters of up to 125 photos mapped incrementally, merged, then one global bundle "
+         "adjustment (mapping time grows linearly with the photos).")
+refine_option = click.option(
+    "--refine/--no-refine", default=True, show_default=True,
+    help="Move each keypoint to where its matches' image patches agree (sub-pixel patch alignment, then one "
+         "least-squares fit per keypoint; written to features-refined.h5) before the database. Learned "
+         "keypoints sit ~0.25 px off; refined, long walks drift less. --no-refine maps the detections as they are.")
 seed_option = click.option("--seed", type=int, default=0, show_default=True,
                            help="Random seed of RANSAC and the mapper.")
 
@@ -91,6 +101,7 @@ seed_option = click.option("--seed", type=int, default=0, show_default=True,
 @camera_options
 @mapper_type_option
 @mapper_option
+@refine_option
 @click.option("--verification", multiple=True, metavar="KEY=VALUE", callback=_print_option_help,
               help="Set an option of pycolmap's TwoViewGeometryOptions, e.g. ransac.max_error=2 "
                    "(repeatable; `--verification help` lists them).")
@@ -106,15 +117,16 @@ seed_option = click.option("--seed", type=int, default=0, show_default=True,
 @executor_options
 def reconstruct(images, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel,
                 max_pixels, weights, num_threads, device, precision, pairs_mode, pairs_file, window, loop_every, match_mode, ratio,
-                rootsift, camera_model, camera_mode, camera_params, mapper_type, mapper, verification, seed,
+                rootsift, camera_model, camera_mode, camera_params, mapper_type, mapper, refine, verification, seed,
                 features_file, matches_file, overwrite, no_progress, executor, ray_options) -> None:
     """Reconstruct cameras and 3D points from the images below IMAGES (COLMAP SfM through pycolmap).
 
     \b
     Runs extract, pairs and match when their outputs are missing in OUTPUT (reusing them
     when present and made with the same settings; --features/--matches use existing files
-    instead), imports everything into a COLMAP database, verifies the matches geometrically
-    and maps (--mapper-type). Images are reduced to 1600 px on the long side unless
+    instead), moves each keypoint to where its matches' patches agree (--no-refine skips
+    it), imports everything into a COLMAP database, verifies the matches geometrically and
+    maps (--mapper-type). Images are reduced to 1600 px on the long side unless
     --resize-max says otherwise. Photos of the same size, EXIF make, model and focal length
     share a camera (--camera-mode auto). The largest model is written to OUTPUT/model
     (COLMAP binary); if the photos split into several models, the others go to
@@ -149,6 +161,7 @@ def reconstruct(images, output, feature, max_keypoints, threshold, nms_radius, r
         matching=matching,
         camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params),
         mapper_type=mapper_type, mapper=list(mapper), verification=list(verification), seed=seed)
+    config.refine.enabled = refine
     if current_conf():  # hloc-style names, so the files of several presets coexist in OUTPUT
         config.file_names = output_names(current_conf(), "pairs")
     try:

@@ -1,6 +1,8 @@
 """`sekd bench scale`: the generated scene (exact projection, co-visibility), measurement, metrics, end to end."""
+import dataclasses
 import json
 import math
+import os
 from pathlib import Path
 
 import cv2
@@ -12,28 +14,28 @@ from sekd_sfm.cli.main import sekd
 from sekd_sfm.bench.scale.measure import run_measured
 from sekd_sfm.bench.scale.run import growth_exponent, pair_errors, pairs_recall
 from sekd_sfm.bench.scale.scene import (
+    GRAIN_SCALE,
+    MIN_TEXTURED,
     Camera,
     Face,
     SceneConfig,
     SurfaceView,
     Textures,
-    GRAIN_SCALE,
-    MIN_TEXTURED,
     add_grain,
-    grain_texture,
     apparent_size,
     assign_textures,
-    pavement_texture,
-    texture_cells,
-    textured_fraction,
     covisibility_counts,
     generate_scene,
+    grain_texture,
     layout_scene,
+    pavement_texture,
     pixel_overlap,
     read_covisibility,
     read_scene,
     render,
     render_layers,
+    texture_cells,
+    textured_fraction,
 )
 from sekd_sfm.bench.strecha import read_cameras
 from sekd_sfm.errors import SekdError
@@ -448,3 +450,53 @@ def test_bench_scale_leaves_a_size_another_process_runs(tmp_path):
         run_scale_benchmark(tmp_path, ScaleConfig(sizes=(12,), image_size=160))
     assert not (tmp_path / "n12/result.json").exists() and not (tmp_path / "n12/scene").exists()
     assert json.loads((tmp_path / "results.json").read_text())["results"] == []
+
+
+def _finished_baseline(folder, pairs, pycolmap_version):
+    """A size folder as an earlier run leaves it: pycolmap/pairs-colmap.txt, pycolmap/model, result.json."""
+    from sekd_sfm.bench.scale.run import ScaleConfig
+
+    (folder / "pycolmap/model").mkdir(parents=True)
+    (folder / "pycolmap/pairs-colmap.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    settings = {**dataclasses.asdict(ScaleConfig()), "versions": {"pycolmap": pycolmap_version}}
+    result = {"pycolmap": {"failure": None, "registered": 7, "model": "elsewhere"}, "settings": settings}
+    (folder / "result.json").write_text(json.dumps(result))
+    return result
+
+
+def test_pycolmap_run_is_reused_only_for_the_same_scene_pairs_and_version(tmp_path):
+    from sekd_sfm.bench.scale.run import ScaleConfig, reusable_baseline
+    from sekd_sfm.runtime import package_versions
+
+    pairs = [("00000.jpg", "00001.jpg"), ("00001.jpg", "00002.jpg")]
+    previous = _finished_baseline(tmp_path, pairs, package_versions()["pycolmap"])
+    work = tmp_path / "pycolmap"
+    reused = reusable_baseline(previous, work, pairs, ScaleConfig())
+    assert reused["registered"] == 7 and reused["model"] == str(work / "model") and reused["reused_from"] == str(work)
+    assert reusable_baseline(previous, work, pairs[:1], ScaleConfig()) is None            # other pairs
+    assert reusable_baseline(previous, work, pairs, ScaleConfig(spacing=2.0)) is None     # another scene
+    assert reusable_baseline(None, work, pairs, ScaleConfig()) is None
+    other_version = {**previous, "settings": {**previous["settings"], "versions": {"pycolmap": "0.0"}}}
+    assert reusable_baseline(other_version, work, pairs, ScaleConfig()) is None
+    failed = {**previous, "pycolmap": {"failure": "map: no model"}}
+    assert reusable_baseline(failed, work, pairs, ScaleConfig()) is None
+
+
+def test_link_scene_takes_only_a_scene_of_the_same_configuration(tmp_path):
+    from sekd_sfm.bench.scale.run import link_scene
+
+    config = SceneConfig(num_images=10, image_size=96, seed=3)
+    generate_scene(tmp_path / "a", config, progress=False)
+    assert link_scene(tmp_path / "a", tmp_path / "b", config)
+    assert read_scene(tmp_path / "b")["config"] == read_scene(tmp_path / "a")["config"]
+    image = min((tmp_path / "a/images").iterdir())
+    assert os.stat(image).st_ino == os.stat(tmp_path / "b/images" / image.name).st_ino  # linked, not copied
+    assert not link_scene(tmp_path / "a", tmp_path / "c", dataclasses.replace(config, seed=4))
+    assert not (tmp_path / "c").exists() and not link_scene(tmp_path / "missing", tmp_path / "d", config)
+
+
+def test_bench_scale_refuses_an_unknown_mapper_option_before_any_work(tmp_path):
+    result = CliRunner().invoke(sekd, ["bench", "scale", "--sizes", "10", "-o", str(tmp_path / "out"),
+                                       "--mapper-type", "hierarchical", "--mapper", "no_such_option=1"])
+    assert result.exit_code != 0 and "no_such_option" in result.output
+    assert not (tmp_path / "out").exists()

@@ -27,6 +27,7 @@ from sekd_sfm.sfm.mapping import (
     MAPPER_TYPES,
     default_options,
     mapper_options,
+    resolve_mapper_type,
     run_mapper,
 )
 from sekd_sfm.sfm.reconstruct import ReconstructConfig, reconstruct
@@ -98,11 +99,23 @@ def test_options_of_each_mapper_are_accepted():
 
 
 @pytest.mark.parametrize("mapper_type,expected", [("global", "mapper.rotation_averaging.max_rotation_error_deg = 10.0"),
-                                                  ("hierarchical", "clustering_options.leaf_max_num_images = 500")])
+                                                  ("hierarchical", "clustering_options.leaf_max_num_images = 125"),
+                                                  ("auto", "# --mapper-type auto: these options up to 250 photos")])
 def test_mapper_help_lists_the_options_of_the_chosen_type(mapper_type, expected):
     result = CliRunner().invoke(sekd, ["reconstruct", "x", "-o", "y", "--mapper", "help", "--mapper-type", mapper_type])
     assert result.exit_code == 0 and expected in result.output
-    assert "mapper.init_min_tri_angle" not in result.output or mapper_type == "hierarchical"
+    assert "mapper.init_min_tri_angle" not in result.output or mapper_type in ("hierarchical", "auto")
+
+
+def test_auto_maps_small_collections_incrementally_and_large_ones_hierarchically():
+    assert resolve_mapper_type("auto", 10) == resolve_mapper_type("auto", 250) == "incremental"
+    assert resolve_mapper_type("auto", 251) == "hierarchical"
+    assert resolve_mapper_type("global", 10_000) == "global"
+    with pytest.raises(SekdError, match="unknown mapper type 'fast'; choose from auto, incremental"):
+        resolve_mapper_type("fast", 10)
+    options = mapper_options(mapper_type="hierarchical")
+    assert options.clustering_options.leaf_max_num_images == 125 and options.num_workers == 1
+    assert options.incremental_options.num_threads == 1
 
 
 # ----------------------------------------------------------------------------- Ctrl-C

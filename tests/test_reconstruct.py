@@ -172,7 +172,10 @@ def test_synthetic_outputs_and_stats(synthetic):
     assert stats["status"] == "ok" and stats["failure"] is None
     assert stats["model"]["registered_images"] == 8 and stats["model"]["points3D"] > 200
     assert stats["model"]["mean_track_length"] > 3 and stats["matches"]["verified_pairs"] == 28
-    assert set(stats["timings_s"]) == {"extract", "pairs", "match", "database", "verification", "mapping", "total"}
+    assert set(stats["timings_s"]) == {"extract", "pairs", "match", "refine", "database", "verification", "mapping",
+                                       "total"}
+    # Blank photos: no patch can be aligned, so refinement leaves every keypoint where it was.
+    assert stats["refine"]["aligned"] == 0 and stats["refine"]["matches"] > 0
     assert stats["unregistered"] == [] and stats["config"]["camera"]["mode"] == "single"
     assert stats["matching"] == {"mode": "both", "ratio": 0.85, "metric": "l2", "rootsift": True}  # SIFT defaults
     assert "incremental_pipeline" in (out / "colmap.log").read_text()

@@ -4,7 +4,9 @@
 * ``global`` (``pycolmap.global_mapping``, GLOMAP): rotation averaging + global positioning,
   then bundle adjustment: all cameras at once;
 * ``hierarchical`` (``pycolmap.hierarchical_mapping``): the view graph cut into overlapping
-  clusters, each mapped incrementally, then merged (for very large collections).
+  clusters of at most HIERARCHICAL_LEAF_IMAGES photos, each mapped incrementally, then
+  merged; then one global bundle adjustment of each merged model (``mapper_worker``);
+* ``auto`` (the default): incremental up to AUTO_HIERARCHICAL_ABOVE photos, hierarchical above.
 
 The mapper runs in a child process (``mapper_worker``) so that Ctrl-C stops it at once.
 
@@ -38,6 +40,15 @@ MODELS = "models"
 #: Folders of older layouts and of killed runs, removed before models are written.
 STALE = ("submodels",)
 MAPPER_TYPES = ("incremental", "global", "hierarchical")
+#: What ``--mapper-type`` accepts: a mapper, or ``auto`` (``resolve_mapper_type``).
+MAPPER_CHOICES = ("auto", *MAPPER_TYPES)
+#: Photos per cluster of the hierarchical mapper (pycolmap's default is 500). Cost: the
+#: clusters are independent, so mapping grows linearly with the photos instead of with a
+#: single model's ever longer bundle adjustments. Accuracy: with the final global bundle
+#: adjustment, on the generated blocks of `sekd bench scale` (docs/reconstruction.md).
+HIERARCHICAL_LEAF_IMAGES = 125
+#: ``auto`` maps more photos than this hierarchically (at 250 both mappers are level in time and accuracy).
+AUTO_HIERARCHICAL_ABOVE = 250
 #: pycolmap's option class of each mapper type.
 OPTION_CLASSES = {"incremental": "IncrementalPipelineOptions", "global": "GlobalPipelineOptions",
                   "hierarchical": "HierarchicalPipelineOptions"}
@@ -56,6 +67,9 @@ def default_options(mapper_type: str = "incremental", seed: int = 0):
     options.num_threads = 1
     if mapper_type == "hierarchical":  # no seed of its own: its clusters are mapped incrementally
         options.incremental_options.random_seed = seed
+        options.incremental_options.num_threads = 1
+        options.num_workers = 1  # one cluster at a time: the same model for a seed (num_workers=-1: faster)
+        options.clustering_options.leaf_max_num_images = HIERARCHICAL_LEAF_IMAGES
     else:
         options.random_seed = seed
     return options
@@ -72,6 +86,15 @@ def mapper_options(assignments: list[str] | None = None, seed: int = 0, mapper_t
     trades repeatability for speed on large scenes.
     """
     return set_options(default_options(mapper_type, seed), assignments or [], "--mapper")
+
+
+def resolve_mapper_type(mapper_type: str, num_images: int) -> str:
+    """The mapper ``mapper_type`` stands for on ``num_images`` photos: ``auto`` picks by size, others are themselves."""
+    if mapper_type == "auto":
+        return "hierarchical" if num_images > AUTO_HIERARCHICAL_ABOVE else "incremental"
+    if mapper_type not in MAPPER_TYPES:
+        raise SekdError(f"unknown mapper type {mapper_type!r}; choose from {', '.join(MAPPER_CHOICES)}")
+    return mapper_type
 
 
 def mapper_type_of(options) -> str:

@@ -4,6 +4,8 @@ Files in the output folder::
 
     features.h5, pairs.txt, matches.h5   the earlier stages (reused when made with the same configuration;
                                          features/matches given by the caller are read in place instead)
+    features-refined.h5                  the keypoints moved to where their matches agree (``refine``;
+                                         hloc layout, keypoints only), what the database gets
     database.db                          COLMAP database (kept on failure, for inspection)
     colmap.log                           COLMAP's log
     model/, models/<k>/                  COLMAP binary models (the largest in model/, the others largest first)
@@ -27,6 +29,7 @@ from .. import matchfile as mf
 from ..errors import SekdError
 from ..extract import extract_features
 from ..features import FeatureConfig
+from ..images import list_images
 from ..locking import exclusive_lock
 from ..match import MatchConfig, match_features
 from ..pairs import PairsConfig, make_pairs, read_pairs, write_pairs
@@ -40,15 +43,16 @@ from .database import (
     verify_matches,
 )
 from .mapping import (
-    MAPPER_TYPES,
     clean_scratch,
     mapper_options,
     min_num_matches,
     model_stats,
     registered_names,
+    resolve_mapper_type,
     run_mapper,
     write_models,
 )
+from .refine import RefineConfig, refine_keypoints, refine_summary
 from .report import (
     ReconstructionError,
     check_enough_matches,
@@ -66,15 +70,17 @@ logger = logging.getLogger("sekd")
 #: Long side (px) images are reduced to for reconstruction, as hloc does: SEKD's cost grows with
 #: the pixels, and a 24 MP photo at full size costs ~40 s of CPU to extract.
 DEFAULT_RESIZE_MAX = 1600
-#: The mapper used unless told otherwise (docs/reconstruction.md has the measurements).
-DEFAULT_MAPPER = "incremental"
+#: The mapper used unless told otherwise: ``auto`` = incremental up to 250 photos, hierarchical
+#: above (docs/reconstruction.md has the measurements).
+DEFAULT_MAPPER = "auto"
 
 
 @dataclass
 class ReconstructConfig:
     """Every stage's settings; ``mapper`` / ``verification`` are ``key=value`` pycolmap option overrides.
 
-    ``mapper_type`` is one of MAPPER_TYPES; ``mapper`` options are those of its option class.
+    ``mapper_type`` is one of MAPPER_CHOICES; ``mapper`` options are those of its option class
+    (for ``auto``: of the mapper it picks for the collection's size).
     """
 
     features: FeatureConfig = field(default_factory=lambda: FeatureConfig(resize_max=DEFAULT_RESIZE_MAX))
@@ -84,6 +90,9 @@ class ReconstructConfig:
     mapper_type: str = DEFAULT_MAPPER
     mapper: list[str] = field(default_factory=list)
     verification: list[str] = field(default_factory=list)
+    #: Keypoint refinement between matching and the database (``refine.py``): on the generated
+    #: 250-photo block pose AUC@5 0.971 -> 0.980, reprojection error 0.39 -> 0.22 px.
+    refine: RefineConfig = field(default_factory=RefineConfig)
     seed: int = 0
     #: Names of the feature and match files made in the output folder (``--conf`` names them
     #: hloc-style, feats-<conf>.h5 and matches-<conf>_pairs.h5, so several presets' files coexist).
@@ -169,17 +178,24 @@ def _locked(image_dir, out, config, stages: dict, features, matches) -> Path:
 
 def _run(image_dir, out, config, timer, stats, stages: dict, features, matches) -> Path:
     # Options are checked first, so a typo fails in a second, not after extraction and matching.
-    if config.mapper_type not in MAPPER_TYPES:
-        raise SekdError(f"unknown mapper type {config.mapper_type!r}; choose from {', '.join(MAPPER_TYPES)}")
-    options = mapper_options(config.mapper, config.seed, config.mapper_type)
+    count = _num_photos(image_dir, features) if config.mapper_type == "auto" else 0  # only auto looks at the size
+    mapper_type = resolve_mapper_type(config.mapper_type, count)
+    stats["mapper_type"] = mapper_type
+    options = mapper_options(config.mapper, config.seed, mapper_type)
     two_view = two_view_options(config.verification, config.seed)
     parse_camera_params(config.camera.model, config.camera.params)
     features, pairs_file, matches = _inputs(image_dir, out, config, timer, stats, stages, features, matches)
     num_threads, progress = stages["num_threads"], stages["progress"]
+    pairs, keypoints = read_pairs(pairs_file), features
+    if config.refine.enabled:
+        with timer("refine"):
+            keypoints = refine_keypoints(features, matches, pairs, image_dir, out / refined_name(config.file_names[0]),
+                                         config.refine, progress=progress)
+        stats["refine"] = refine_summary(keypoints)
     database = out / "database.db"
     with colmap_log(out / "colmap.log") as log:
         with timer("database"):
-            create_database(image_dir, features, matches, read_pairs(pairs_file), database, config.camera)
+            create_database(image_dir, keypoints, matches, pairs, database, config.camera)
         with timer("verification"):
             verify_matches(database, two_view, num_threads or -1)
         match_stats = match_statistics(database, min_num_matches(options))
@@ -188,6 +204,21 @@ def _run(image_dir, out, config, timer, stats, stages: dict, features, matches) 
         with timer("mapping"):
             models = run_mapper(database, image_dir, options, progress, log_prefix=log_prefix(log))
     return _finish(models, match_stats, options, out, stats, database)
+
+
+def _num_photos(image_dir: Path, features) -> int:
+    """The photos to map: the feature file's images when given, else those below ``image_dir`` (0 if none:
+    extraction then says so, after the options are checked)."""
+    try:
+        return len(ff.list_keys(Path(features))) if features is not None else len(list_images(image_dir))
+    except (SekdError, OSError):
+        return 0
+
+
+def refined_name(features_name: str) -> str:
+    """The refined keypoints' file name beside the features': features.h5 -> features-refined.h5."""
+    path = Path(features_name)
+    return f"{path.stem}-refined{path.suffix or '.h5'}"
 
 
 def _inputs(image_dir, out, config, timer, stats, stages: dict, features, matches):

@@ -158,6 +158,10 @@ def format_summary(stats: dict) -> str:
     if m:
         lines.append(f"  matches            {m['pairs_with_matches']} pairs, median {m['median_matches']:.0f} matches, "
                      f"{m['verified_pairs']} verified (median {m['median_inliers']:.0f} inliers)")
+    refine = stats.get("refine")
+    if refine:
+        lines.append(f"  refined keypoints  {refine['aligned']} of {refine['matches']} matches aligned, "
+                     f"median shift {refine['median_shift_px']:.2f} px")
     unregistered = stats.get("unregistered", [])
     for item in unregistered[:5]:
         lines.append(f"  not registered     {item['name']}: {item.get('keypoints', 0)} keypoints, "

@@ -27,7 +27,9 @@ import contextlib
 import json
 import logging
 import math
+import os
 import shutil
+import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -41,9 +43,9 @@ from .measure import Measurement, run_measured
 from .scene import SceneConfig, generate_scene, read_covisibility, read_scene
 
 logger = logging.getLogger("sekd")
-OUR_STAGES = {"extract": "extract", "pairs": "pairs", "match": "match", "database": "import",
+OUR_STAGES = {"extract": "extract", "pairs": "pairs", "match": "match", "refine": "refine", "database": "import",
               "verification": "verify", "mapping": "map"}
-STAGES = ("generate", "extract", "pairs", "match", "import", "verify", "map")
+STAGES = ("generate", "extract", "pairs", "match", "refine", "import", "verify", "map")
 MB = 1024 * 1024
 
 
@@ -59,6 +61,9 @@ class ScaleConfig:
     num_threads: int | None = None
     min_overlap: float = 0.1     # ground-truth co-visible pair: shares this fraction of the smaller view
     textures: str | None = None
+    #: An earlier benchmark folder whose scenes and pycolmap runs are reused where their inputs are the same
+    #: (a variant of our pipeline, e.g. another mapper, then costs only its own run).
+    baseline_from: str | None = None
 
 
 # ----------------------------------------------------------------------------- stages run in child processes
@@ -291,11 +296,73 @@ def run_pycolmap(scene_dir: Path, work: Path, pairs: list[tuple[str, str]], num_
             "matcher": "exhaustive" if exhaustive else "imported pairs", "model": str(work / "model")}
 
 
-def run_size(out: Path, size: int, config: ScaleConfig, reconstruct_config) -> dict:
-    """Generate the scene of ``size`` photos and run both pipelines on it; writes ``result.json``."""
+def our_config(reconstruct_config) -> dict:
+    """Our pipeline's configuration as its stats.json records it (JSON types), to tell whether a result is current."""
+    from ...sfm.reconstruct import _config_dict
+
+    return json.loads(json.dumps(_config_dict(reconstruct_config), default=str))
+
+
+def reusable_baseline(previous: dict | None, work: Path, pairs: list[tuple[str, str]], config: ScaleConfig) -> dict | None:
+    """The pycolmap result of ``previous`` (an earlier result.json of this size) if it ran on exactly these inputs.
+
+    Same scene settings, same pairs (its pairs file), same pycolmap version: its pipeline is
+    deterministic (seeded, one mapping thread) and would give the same model, so only our pipeline reruns.
+    """
+    from ...runtime import package_versions
+
+    if not previous or "pycolmap" not in previous or previous["pycolmap"].get("failure"):
+        return None
+    settings = previous.get("settings", {})
+    same = all(settings.get(k) == getattr(config, k) for k in ("image_size", "spacing", "seed", "textures", "min_overlap"))
+    versions = settings.get("versions", {})
+    if not same or versions.get("pycolmap") != package_versions().get("pycolmap"):
+        return None
+    pairs_file = work / "pairs-colmap.txt"
+    stored = pairs_file.read_text() if pairs_file.is_file() else None
+    if stored != "".join(f"{a} {b}\n" for a, b in pairs) or not (work / "model").is_dir():
+        return None
+    return {**previous["pycolmap"], "model": str(work / "model"), "reused_from": str(work)}
+
+
+def link_scene(source: Path, target: Path, scene_config: SceneConfig) -> bool:
+    """Hard-link (else copy) a generated scene of the same configuration from ``source`` to ``target``.
+
+    Returns whether it did; a scene of another configuration is left alone (``target`` is then generated).
+    """
+    from .scene import _config_record
+
+    try:
+        if json.loads((source / "scene.json").read_text()).get("config") != _config_record(scene_config):
+            return False
+    except (OSError, ValueError):
+        return False
+
+    def link(src, dst):
+        try:
+            os.link(src, dst)
+        except OSError:  # another file system
+            shutil.copy2(src, dst)
+
+    partial = target.with_name(target.name + ".linking")
+    shutil.rmtree(partial, ignore_errors=True)
+    shutil.copytree(source, partial, copy_function=link)
+    partial.rename(target)  # scene.json appears with the whole folder
+    logger.info("%s: scene linked from %s", target, source)
+    return True
+
+
+def run_size(out: Path, size: int, config: ScaleConfig, reconstruct_config, previous: dict | None = None) -> dict:
+    """Generate the scene of ``size`` photos and run both pipelines on it; writes ``result.json``.
+
+    ``previous``: this size's earlier result, whose pycolmap run is reused when its inputs are the same.
+    """
     scene_dir = out / "scene"
     scene_config = SceneConfig(num_images=size, image_size=config.image_size, spacing=config.spacing,
                                seed=config.seed, textures=config.textures)
+    other = Path(config.baseline_from) / out.name if config.baseline_from else None
+    if other is not None and not scene_dir.exists():
+        link_scene(other / "scene", scene_dir, scene_config)
     generation = None
     if not (scene_dir / "scene.json").is_file():
         m = run_measured(_generate, (str(scene_dir), scene_config), out / "measure-generate.json")
@@ -320,9 +387,15 @@ def run_size(out: Path, size: int, config: ScaleConfig, reconstruct_config) -> d
                                                                  sorted(scene["cameras"]), matchable, 20)
     result["ours"] = ours
     if config.baseline and pairs:
-        logger.info("n=%d: pycolmap SIFT pipeline on %d pairs", size, len(pairs))
-        base = run_pycolmap(scene_dir, out / "pycolmap", pairs, size, config.seed, config.num_threads,
-                            reconstruct_config.features.resize_max or 3200)
+        base = reusable_baseline(previous, out / "pycolmap", pairs, config)
+        if base is None and other is not None and (other / "result.json").is_file():
+            base = reusable_baseline(json.loads((other / "result.json").read_text()), other / "pycolmap", pairs, config)
+        if base is not None:
+            logger.info("n=%d: pycolmap SIFT pipeline ran on the same scene and pairs earlier; its run is reused", size)
+        else:
+            logger.info("n=%d: pycolmap SIFT pipeline on %d pairs", size, len(pairs))
+            base = run_pycolmap(scene_dir, out / "pycolmap", pairs, size, config.seed, config.num_threads,
+                                reconstruct_config.features.resize_max or 3200)
         base.update(evaluate_model(Path(base["model"]), scene, covisible))
         result["pycolmap"] = base
     return result
@@ -342,10 +415,11 @@ def run_scale_benchmark(output_dir: str | Path, config: ScaleConfig, reconstruct
     reconstruct_config = reconstruct_config or ReconstructConfig()
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
+    current = our_config(reconstruct_config)
     for size in sorted(config.sizes):
         folder = out / f"n{size}"
         done = folder / "result.json"
-        if done.is_file():
+        if _finished(done, current):
             logger.info("n=%d: finished earlier (%s), skipped", size, done)
             continue
         folder.mkdir(exist_ok=True)
@@ -355,14 +429,25 @@ def run_scale_benchmark(output_dir: str | Path, config: ScaleConfig, reconstruct
             except SekdError:
                 logger.warning("n=%d: another process is running this size (%s); skipped", size, folder)
                 continue
-            if done.is_file():  # finished by the process that held the lock a moment ago
+            if _finished(done, current):  # finished by the process that held the lock a moment ago
                 continue
-            result = run_size(folder, size, config, reconstruct_config)
+            previous = json.loads(done.read_text()) if done.is_file() else None
+            if previous:
+                logger.info("n=%d: our pipeline's settings changed since %s; it reruns", size, done)
+            result = run_size(folder, size, config, reconstruct_config, previous)
             from ...runtime import package_versions
 
-            result["settings"] = {**asdict(replace(config, sizes=tuple(config.sizes))), "versions": package_versions()}
+            result["settings"] = {**asdict(replace(config, sizes=tuple(config.sizes))), "versions": package_versions(),
+                                  "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
             write_atomic(done, json.dumps(result, indent=1, default=str))
     return write_report(out)
+
+
+def _finished(done: Path, current: dict) -> bool:
+    """Whether ``done`` (a size's result.json) exists and our pipeline ran there with the configuration ``current``."""
+    if not done.is_file():
+        return False
+    return (json.loads(done.read_text()).get("ours") or {}).get("config") == current
 
 
 def load_results(out: Path) -> list[dict]:
