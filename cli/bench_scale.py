@@ -51,7 +51,7 @@ def scale(sizes, output, image_size, spacing, seed, textures, no_baseline, num_t
     Each scene is a city block of textured box buildings photographed by a camera walking
     around it (one photo every --spacing m), with known cameras, ground-truth co-visibility,
     lighting changes and ~3% unrelated distractor photos. Per size and stage (extract, pairs,
-    match, verify, map): wall time, peak RSS and bytes written; per pipeline: registered
+    match, refine, import, verify, map): wall time, peak RSS and bytes written; per pipeline: registered
     photos, registered distractors, pose AUC@5 against the true cameras; then the growth
     exponent of each stage. Our pipeline runs with `sekd reconstruct`'s defaults unless
     --weights, --max-keypoints, --mapper-type, --mapper or --no-refine say otherwise.

@@ -236,6 +236,11 @@ def resized_to_original_matrix(sx: float, sy: float) -> np.ndarray:
     return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1.0]])
 
 
+def to_resized_pixels(points: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """The inverse of ``to_original_pixels``: ``N x 2`` original pixels -> pixels of the resized image (float64)."""
+    return (np.asarray(points, dtype=np.float64) + 0.5) / np.array([sx, sy]) - 0.5
+
+
 def to_original_pixels(keypoints: np.ndarray, sx: float, sy: float) -> np.ndarray:
     """Map ``N x 2`` keypoints of a resized image back to original pixels (pixel-centre convention)."""
     if sx == 1.0 and sy == 1.0:

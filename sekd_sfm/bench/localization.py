@@ -75,7 +75,7 @@ def summarize(distances: np.ndarray) -> dict:
             "under_0_5px": round(float((distances < 0.5).mean()), 4)}
 
 
-def make_pairs(photos: list[Path], folder: Path, config: LocalizationConfig) -> dict[str, np.ndarray]:
+def warp_photos(photos: list[Path], folder: Path, config: LocalizationConfig) -> dict[str, np.ndarray]:
     """Each photo (grayscale, PNG) and its warp into ``folder``; returns ``"i/0.png i/1.png" -> H``."""
     import cv2
 
@@ -137,7 +137,7 @@ def run_localization_benchmark(output: str | Path, methods: list[Method], config
         photos = sorted((shared_dir() / "data/train/coco").glob("*.jpg"))[: config.num_images]
     if not photos:
         raise SekdError("no photos to warp: give photos, or set SEKD_SHARED to the shared data folder")
-    homographies = make_pairs(photos, out / "images", config)
+    homographies = warp_photos(photos, out / "images", config)
     results = evaluate_each(methods, lambda m: _evaluate(m, out / "images", out / "work", homographies, config))
     report = {"config": asdict(config), "photos": [p.name for p in photos], "versions": package_versions(),
               "results": results}

@@ -40,7 +40,7 @@ from .. import featurefile as ff
 from .. import matchfile as mf
 from ..errors import SekdError
 from ..fsio import atomic_output
-from ..images import ImageReadError, load_scaled
+from ..images import ImageReadError, load_scaled, to_resized_pixels
 from ..runtime import package_versions
 
 logger = logging.getLogger("sekd")
@@ -228,8 +228,7 @@ def _pair_edges(a: AlignImage, b: AlignImage, ka: np.ndarray, kb: np.ndarray, id
     ia, ib = idx[:, 0].astype(np.int64), idx[:, 1].astype(np.int64)
     if len(ia) < max(8, config.neighbours):
         return None
-    xa = (ka[ia] + 0.5) / (a.sx, a.sy) - 0.5  # original -> processed pixels
-    xb = (kb[ib] + 0.5) / (b.sx, b.sy) - 0.5
+    xa, xb = to_resized_pixels(ka[ia], a.sx, a.sy), to_resized_pixels(kb[ib], b.sx, b.sy)
     _, inliers = cv2.findFundamentalMat(xa, xb, cv2.FM_RANSAC, config.ransac_px, 0.999)
     if inliers is None or inliers.sum() < config.neighbours:
         return None

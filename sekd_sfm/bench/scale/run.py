@@ -47,6 +47,8 @@ OUR_STAGES = {"extract": "extract", "pairs": "pairs", "match": "match", "refine"
               "verification": "verify", "mapping": "map"}
 STAGES = ("generate", "extract", "pairs", "match", "refine", "import", "verify", "map")
 MB = 1024 * 1024
+#: The pairs file of pycolmap's run (COLMAP's imported pairs: "name0 name1" per line).
+COLMAP_PAIRS = "pairs-colmap.txt"
 
 
 @dataclass
@@ -276,9 +278,12 @@ def run_pycolmap(scene_dir: Path, work: Path, pairs: list[tuple[str, str]], num_
     database, images = str(work / "database.db"), str(scene_dir / "images")
     exhaustive = len(pairs) == num_images * (num_images - 1) // 2
     pairs_path = None
-    if not exhaustive:  # COLMAP's imported pairs: "name0 name1" per line
-        pairs_path = work / "pairs-colmap.txt"
-        pairs_path.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    if not exhaustive:
+        # Imported here, not at the top: sekd_sfm.pairs loads torch, and the baseline's child processes import this module.
+        from ...pairs import format_pairs
+
+        pairs_path = work / COLMAP_PAIRS
+        pairs_path.write_text(format_pairs(pairs))
     steps = [("extract", _colmap_extract, (database, images, max_image_size, num_threads)),
              ("match", _colmap_match, (database, str(pairs_path) if pairs_path else None, num_threads)),
              ("verify", _colmap_verify, (database, num_threads)),
@@ -309,6 +314,7 @@ def reusable_baseline(previous: dict | None, work: Path, pairs: list[tuple[str, 
     Same scene settings, same pairs (its pairs file), same pycolmap version: its pipeline is
     deterministic (seeded, one mapping thread) and would give the same model, so only our pipeline reruns.
     """
+    from ...pairs import format_pairs
     from ...runtime import package_versions
 
     if not previous or "pycolmap" not in previous or previous["pycolmap"].get("failure"):
@@ -318,9 +324,9 @@ def reusable_baseline(previous: dict | None, work: Path, pairs: list[tuple[str, 
     versions = settings.get("versions", {})
     if not same or versions.get("pycolmap") != package_versions().get("pycolmap"):
         return None
-    pairs_file = work / "pairs-colmap.txt"
+    pairs_file = work / COLMAP_PAIRS
     stored = pairs_file.read_text() if pairs_file.is_file() else None
-    if stored != "".join(f"{a} {b}\n" for a, b in pairs) or not (work / "model").is_dir():
+    if stored != format_pairs(pairs) or not (work / "model").is_dir():
         return None
     return {**previous["pycolmap"], "model": str(work / "model"), "reused_from": str(work)}
 
