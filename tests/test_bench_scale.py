@@ -500,3 +500,35 @@ def test_bench_scale_refuses_an_unknown_mapper_option_before_any_work(tmp_path):
                                        "--mapper-type", "hierarchical", "--mapper", "no_such_option=1"])
     assert result.exit_code != 0 and "no_such_option" in result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_baseline_above_its_mapping_limit_stops_after_verification_and_reports_dashes(tiny_scene, tmp_path):
+    from sekd_sfm.bench.scale.run import exponents, run_pycolmap, scale_markdown
+
+    scene_dir, _ = tiny_scene
+    names = sorted(p.name for p in (scene_dir / "images").iterdir())
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:i + 3]]  # a walk: each photo and the next two
+    record = run_pycolmap(scene_dir, tmp_path / "pycolmap", pairs, len(names), 0, 1, 160, map_stage=False)
+    assert record["failure"] is None and record["skipped"] == ["map"]
+    assert set(record["stages"]) == {"extract", "match", "verify"} and not (tmp_path / "pycolmap/model").exists()
+    assert (tmp_path / "pycolmap/pairs-colmap.txt").read_text().count("\n") == len(pairs)
+
+    def row(size, skipped):  # stage times grow as N^1 (extract) and N^2 (map)
+        stages = {"extract": {"time_s": size, "cpu_s": size}}
+        if not skipped:
+            stages["map"] = {"time_s": size ** 2, "cpu_s": size ** 2}
+        run = {"stages": stages, "wall_s": size + (0 if skipped else size ** 2),
+               "registered": None if skipped else size, "scene_images": size, "registered_distractors": [], "auc5": None, "auc5_covisible": None,
+               "median_pose_error_deg": None, "peak_rss_mb": 1, "written_mb": 1, "failure": None,
+               "skipped": ["map"] if skipped else []}
+        run["cpu_s"] = run["wall_s"]
+        return {"size": size, "distractors": [], "pairs": {"pairs": 1, "recall": 1.0}, "pycolmap": run}
+
+    results = [row(10, False), row(20, False), row(40, True)]
+    fitted = exponents(results, "pycolmap")
+    assert fitted["extract"] == pytest.approx(1.0) and fitted["map"] == pytest.approx(2.0)
+    # The total fits the whole runs only: (10 + 100) -> (20 + 400), not the 40-photo run without its map.
+    assert fitted["total"] == pytest.approx(math.log(420 / 110) / math.log(2))
+    table = scale_markdown({"results": results, "exponents": {"pycolmap": fitted}})
+    last = next(line for line in table.splitlines() if line.startswith("| 40 | pycolmap SIFT |"))
+    assert "| 1 | same pairs | same pairs | - | - | - |" in last and last.endswith("(stopped before: map)")
