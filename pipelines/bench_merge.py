@@ -2,15 +2,17 @@
 
 Takes the images of a real feature file (e.g. 640 px SEKD, 2,000 keypoints: ~1 MB per
 image), repeats them under new keys up to N images, writes them as Ray workers do (tasks of
-4 images: part chunks for ``copy``, shard files and their descriptions for ``virtual``; one
+--task images, 4 by default: part chunks for ``copy``, shard files and their descriptions for ``virtual``; one
 process here, spread over the workers in a run), then times the driver's merge into
 ``features.h5`` (``featurefile.merge_parts``: copy + fsync + rename, as at the end of a run;
 for ``virtual`` the workers' descriptions saved as a manifest first, as the driver does) and checks
-that both files read the same arrays. Prints images/s and MB/s of each side, and the file
-sizes. The page cache is dropped before each merge when run as root (so the merge reads
+that the files read the same arrays. ``virtual`` copies the groups each shard holds ready-made
+(``shards.LINKS``); ``virtual-described`` is the same merge from shards without them, so each
+group is built from the workers' descriptions (shards of older versions). Prints images/s
+and MB/s of each side, and the file sizes. The page cache is dropped before each merge when run as root (so the merge reads
 from disk as after a real run on shared storage); `--keep-cache` skips that.
 
-Usage: python pipelines/bench_merge.py FEATURES.h5 [--images 2000] [--work DIR]
+Usage: python pipelines/bench_merge.py FEATURES.h5 [--images 2000] [--task 4] [--work DIR]
 """
 from __future__ import annotations
 
@@ -26,8 +28,6 @@ import numpy as np
 
 from sekd_sfm import featurefile as ff
 from sekd_sfm import shards
-
-TASK = 4  # images per Ray task (cluster.task_size up to 32 workers)
 
 
 def _drop_cache(keep: bool) -> str:
@@ -47,6 +47,8 @@ def main() -> None:
     parser.add_argument("--images", type=int, default=2000)
     parser.add_argument("--work", type=Path, default=None)
     parser.add_argument("--keep-cache", action="store_true")
+    parser.add_argument("--task", type=int, default=4,
+                        help="images per Ray task, i.e. per shard (cluster.task_size: 4 up to 32 workers, 64 at 512)")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_merge"))
     shutil.rmtree(work, ignore_errors=True)
@@ -58,24 +60,27 @@ def main() -> None:
     with h5py.File(args.features, "r") as f:
         attrs = dict(f.attrs)
     print(f"merge: {len(items)} images ({len(source)} distinct), {mb:.0f} MB ({mb / len(items):.2f} MB each), "
-          f"tasks of {TASK}")
+          f"tasks of {args.task}")
     rates = {}
-    for mode in ("copy", "virtual"):
+    for mode in ("copy", "virtual", "virtual-described"):
         out = work / mode / "features.h5"
         out.parent.mkdir()
         ff.create_empty(out, attrs)
         described = {}
         t0 = time.perf_counter()
-        for start in range(0, len(items), TASK):
-            task = items[start:start + TASK]
+        for start in range(0, len(items), args.task):
+            task = items[start:start + args.task]
             if mode == "copy":
-                parts = ff.PartStore(out, max_items=TASK + 1, max_seconds=1e9, writer="bench")
+                parts = ff.PartStore(out, max_items=args.task + 1, max_seconds=1e9, writer="bench")
                 for key, arrays in task:
                     parts.save(key, arrays)
                 parts.flush()
             else:  # a worker writes its shard and describes it (shapes, dtypes) for the driver
                 shard = shards.write_shard(out, task, ff.write_image_group, "bench")
                 described[shard.name] = shards.describe(shard)
+                if mode == "virtual-described":
+                    with h5py.File(shard, "a") as f:
+                        del f[shards.LINKS]
         t1 = time.perf_counter()
         cache = _drop_cache(args.keep_cache)
         t2 = time.perf_counter()
@@ -85,14 +90,16 @@ def main() -> None:
         t3 = time.perf_counter()
         assert merged == len(items), (mode, merged)
         rates[mode] = len(items) / (t3 - t2)
-        print(f"{mode:8s} workers' writes {len(items) / (t1 - t0):7.0f} images/s ({mb / (t1 - t0):5.0f} MB/s, one process)"
+        print(f"{mode:17s} workers' writes {len(items) / (t1 - t0):7.0f} images/s ({mb / (t1 - t0):5.0f} MB/s, one process)"
               f" | driver's merge {rates[mode]:7.0f} images/s ({mb / (t3 - t2):6.0f} MB/s; {cache})"
               f" | features.h5 {os.path.getsize(out) / 1e6:8.1f} MB")
-    copy, virtual = work / "copy/features.h5", work / "virtual/features.h5"
-    for key in (items[0][0], items[-1][0]):
-        a, b = ff.read_features(copy, key), ff.read_features(virtual, key)
-        assert all(np.array_equal(a[n], b[n]) for n in a), key
-    print(f"virtual / copy merge rate: {rates['virtual'] / rates['copy']:.1f}x; both files read the same arrays")
+    copy = work / "copy/features.h5"
+    for other in ("virtual", "virtual-described"):
+        for key in (items[0][0], items[-1][0]):
+            a, b = ff.read_features(copy, key), ff.read_features(work / other / "features.h5", key)
+            assert all(np.array_equal(a[n], b[n]) for n in a), (other, key)
+    print(f"merge rate: virtual / copy {rates['virtual'] / rates['copy']:.1f}x, virtual / virtual-described "
+          f"{rates['virtual'] / rates['virtual-described']:.1f}x; the files read the same arrays")
     shutil.rmtree(work, ignore_errors=True)
 
 

@@ -108,6 +108,8 @@ EOF
 # Ray Data (identity workers returning key rows, no model: the whole driver side of a run
 # with free workers; CPU of the driver process per row, Ray's threads included).
 python "$(dirname "$0")/bench_merge.py" "$OUT/local1.h5" --images 2000 --work "$OUT/merge" | tee -a "$REPORT"
+# ... and in tasks of 64 images, the task size of a 512-worker cluster (cluster.task_size)
+python "$(dirname "$0")/bench_merge.py" "$OUT/local1.h5" --images 2048 --task 64 --work "$OUT/merge" | tee -a "$REPORT"
 
 RAY_BACKEND_LOG_LEVEL=fatal ip netns exec "$NS" python - "127.0.0.1:$PORT" <<'EOF' | tee -a "$REPORT"
 import logging, pickle, sys, time

@@ -481,6 +481,14 @@ def _stream(ray, items: list[dict], worker, args: tuple, base: int, options: Ray
     return dataset.iter_batches(batch_size=None, batch_format="numpy")
 
 
+def _connected_stream(session: dict, items: list[dict], worker, args: tuple, base: int,
+                      options: RayOptions) -> Iterator[dict]:
+    """``_stream`` that connects to the cluster at its first ``next()``; ``session`` gets ``ray`` and
+    ``owned`` (``_connect``) then, for the caller's disconnect."""
+    session["ray"], session["owned"] = _connect(options)
+    yield from _stream(session["ray"], items, worker, args, base, options)
+
+
 def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
            on_error: Callable[[str, str], None], write_group, progress: bool, folder: Path | None = None,
            shard_meta: dict[str, dict] | None = None, helper: _DriverHelper | None = None) -> None:
@@ -533,6 +541,8 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
                           "run the same command again to resume") from None
     finally:
         bar.close()
+        if helper is not None:  # a failure (a worker's fatal error, no cluster) stops the helper before it surfaces
+            helper.finish(reraise=False)
     end = time.monotonic()
     if helper is not None and helper.done:
         logger.info("Ray: the driver extracted %d of the %d images itself while the workers started; the workers "
@@ -605,7 +615,6 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
         failed.append(key)
         tqdm.write(f"warning: {error}; skipped")
 
-    ray, owned = _connect(options)
     claims = _claims_path(output)
     helper = None
     if options.driver_helps and not options.gpus_per_worker and _on_cpu(extractor):
@@ -615,10 +624,13 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
     from .runtime import set_num_threads
 
     threads = torch.get_num_threads()  # the helper switches to the workers' count; restored below
+    session: dict = {}
     try:
         args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker,
                 str(Path(output).resolve()), options.merge, str(claims.resolve()) if helper else "")
-        results = _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
+        # Connecting (importing Ray and Ray Data, ~2 s of CPU) happens inside the drain, after the
+        # driver's helper has started extracting: the connection costs no extraction time.
+        results = _connected_stream(session, [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
         folder = shards.shard_root(output) if options.merge == "virtual" else None
         shard_meta: dict[str, dict] = {}
         try:
@@ -630,8 +642,8 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
     finally:
         claims.unlink(missing_ok=True)
         set_num_threads(threads)
-        if owned:
-            ray.shutdown()
+        if session.get("owned"):
+            session["ray"].shutdown()
     order = {key: i for i, key in enumerate(todo)}
     return sorted(failed, key=order.__getitem__)  # the order of a local run, whatever order tasks finished in
 

@@ -140,3 +140,54 @@ def test_merge_references_described_shards_without_opening_them(tmp_path, monkey
     for key, arrays in _items(0, 4):
         read = ff.read_features(output, key)
         assert np.array_equal(read["descriptors"], arrays["descriptors"]) and read["keypoints"].dtype == np.float32
+
+
+def _virtual_layout(path, key):
+    """Per array of ``key``: dtype, shape, fill value (NaN as a string), attributes and the VDS source (file, dataset)."""
+    with h5py.File(path, "r") as f:
+        out = {}
+        for name, d in f[key].items():
+            (source,) = d.virtual_sources()
+            fill = d.fillvalue
+            out[name] = (d.dtype.str, d.shape, "nan" if fill != fill else fill, dict(d.attrs),
+                         source.file_name, source.dset_name)
+        return out
+
+
+def test_ready_made_links_give_the_same_file_as_links_built_from_descriptions(tmp_path, monkeypatch):
+    items = _items(0, 3)
+    output = tmp_path / "features.h5"
+    ff.create_empty(output, feature_attrs())
+    name, problem = _TaskParts(str(output), "virtual").write(items)
+    assert problem == ""
+    with h5py.File(shards.shard_root(output) / name, "r") as shard:
+        assert sorted(shard[shards.LINKS]["seq"]) == ["0000.jpg", "0001.jpg", "0002.jpg"]
+    assert sorted(shards.describe(shards.shard_root(output) / name)) == [k for k, _ in items]  # not the links
+    built = tmp_path / "built" / "features.h5"  # the same shard, merged without its ready-made links
+    built.parent.mkdir()
+    ff.create_empty(built, feature_attrs())
+    shutil.copytree(shards.shard_root(output), shards.shard_root(built))
+    copies = []
+    real_copy = shards._copy_links
+    monkeypatch.setattr(shards, "_copy_links", lambda *a: copies.append(1) or set())
+    assert ff.merge_parts(built, ff.PartStore(built)) == 3
+    monkeypatch.setattr(shards, "_copy_links", lambda *a: copies.append(2) or real_copy(*a))
+    assert ff.merge_parts(output, ff.PartStore(output)) == 3
+    assert copies == [1, 2]
+    for key, arrays in items:
+        assert _virtual_layout(output, key) == _virtual_layout(built, key)
+        assert _virtual_layout(output, key)["keypoints"][4] == f"features.h5.shards/{name}"
+        read = ff.read_features(output, key)
+        assert all(np.array_equal(read[n], arrays[n]) for n in ("keypoints", "descriptors", "scores"))
+    assert sorted(list_h5_names(output)) == [k for k, _ in items]  # hloc sees the images only
+
+
+def test_a_shard_without_ready_made_links_is_linked_from_its_description(tmp_path):
+    output = tmp_path / "features.h5"
+    ff.create_empty(output, feature_attrs())
+    name, _ = _TaskParts(str(output), "virtual").write(_items(0, 2))
+    with h5py.File(shards.shard_root(output) / name, "a") as shard:  # as a shard of an older sekd
+        del shard[shards.LINKS]
+    assert ff.merge_parts(output, ff.PartStore(output)) == 2
+    for key, arrays in _items(0, 2):
+        assert np.array_equal(ff.read_features(output, key)["keypoints"], arrays["keypoints"])
