@@ -383,6 +383,8 @@ def test_run_measured_reports_bytes_memory_and_errors(tmp_path):
     assert m.error is None and m.result == len(data)
     assert m.bytes_written >= len(data) and m.peak_rss >= len(data)
     assert 0 <= m.cpu_s < 60 and m.wall_s > 0
+    saved = json.loads((tmp_path / "m.json").read_text())["samples"]  # kept to trace a peak afterwards
+    assert saved and max(rss for _, rss, _, _ in saved) == max(s[1] for s in m.samples)
     failed = run_measured(Path.read_text, (tmp_path / "missing.txt",), tmp_path / "m2.json")
     assert failed.result is None and "FileNotFoundError" in failed.error
 

@@ -125,7 +125,8 @@ def _child(task: str, report: str) -> None:
 def run_measured(target, args: tuple, report: str | Path, interval: float = 0.2) -> Measurement:
     """Run ``target(*args)`` (a module-level function, JSON-serialisable result) in a spawned process.
 
-    ``report`` is a scratch JSON file for the child's answer. Raises SekdError when the
+    ``report`` is a JSON file for the child's answer, to which the samples (unix time, RSS,
+    bytes written, CPU s) are added at the end. Raises SekdError when the
     child dies without answering (killed, out of memory); an exception inside ``target``
     is returned as ``Measurement.error`` with the samples taken so far.
     """
@@ -164,6 +165,9 @@ def run_measured(target, args: tuple, report: str | Path, interval: float = 0.2)
     final = output.get("status", {})
     if final:
         samples.append((output["end"], final.get("VmRSS", 0), final.get("wchar", 0), final.get("cpu", 0.0)))
+    # The samples stay with the report, so a stage's peak can be traced to its moment afterwards.
+    output["samples"] = [[round(t, 2), rss, written, round(cpu, 2)] for t, rss, written, cpu in samples]
+    report.write_text(json.dumps(output, default=str))
     peak = max([final.get("VmHWM", 0)] + [s[1] for s in samples])
     written = final.get("wchar", samples[-1][2] if samples else 0)
     # CPU from the function's start: what the interpreter and the unpickling (imports) used before is left out.
