@@ -2,15 +2,16 @@
 
 Takes the images of a real feature file (e.g. 640 px SEKD, 2,000 keypoints: ~1 MB per
 image), repeats them under new keys up to N images, writes them as Ray workers do (tasks of
---task images, 4 by default: part chunks for ``copy``, shard files and their descriptions for ``virtual``; one
-process here, spread over the workers in a run), then times the driver's merge into
-``features.h5`` (``featurefile.merge_parts``: copy + fsync + rename, as at the end of a run;
-for ``virtual`` the workers' descriptions saved as a manifest first, as the driver does) and checks
-that the files read the same arrays. ``virtual`` copies the groups each shard holds ready-made
+--task images, 4 by default: part chunks for ``copy``, shard files and their descriptions
+for ``virtual``; one process here, spread over the workers in a run), then times the
+driver's merge into ``features.h5`` (``featurefile.merge_parts``: copy + fsync + rename, as
+at the end of a run; for ``virtual`` the workers' descriptions saved as a manifest first,
+as the driver does) and checks that the files read the same arrays. ``virtual`` copies the groups each shard holds ready-made
 (``shards.LINKS``); ``virtual-described`` is the same merge from shards without them, so each
 group is built from the workers' descriptions (shards of older versions). Prints images/s
-and MB/s of each side, and the file sizes. The page cache is dropped before each merge when run as root (so the merge reads
-from disk as after a real run on shared storage); `--keep-cache` skips that.
+and MB/s of each side, and the file sizes. The page cache is dropped before each merge
+when run as root (so the merge reads from disk as after a real run on shared storage);
+`--keep-cache` skips that.
 
 Usage: python pipelines/bench_merge.py FEATURES.h5 [--images 2000] [--task 4] [--work DIR]
 """
@@ -76,8 +77,8 @@ def main() -> None:
                     parts.save(key, arrays)
                 parts.flush()
             else:  # a worker writes its shard and describes it (shapes, dtypes) for the driver
-                shard = shards.write_shard(out, task, ff.write_image_group, "bench")
-                described[shard.name] = shards.describe(shard)
+                shard, description = shards.write_shard(out, task, ff.write_image_group, "bench")
+                described[shard.name] = description
                 if mode == "virtual-described":
                     with h5py.File(shard, "a") as f:
                         del f[shards.LINKS]
@@ -90,7 +91,8 @@ def main() -> None:
         t3 = time.perf_counter()
         assert merged == len(items), (mode, merged)
         rates[mode] = len(items) / (t3 - t2)
-        print(f"{mode:17s} workers' writes {len(items) / (t1 - t0):7.0f} images/s ({mb / (t1 - t0):5.0f} MB/s, one process)"
+        print(f"{mode:17s} workers' writes {len(items) / (t1 - t0):7.0f} images/s "
+              f"({mb / (t1 - t0):5.0f} MB/s, one process)"
               f" | driver's merge {rates[mode]:7.0f} images/s ({mb / (t3 - t2):6.0f} MB/s; {cache})"
               f" | features.h5 {os.path.getsize(out) / 1e6:8.1f} MB")
     copy = work / "copy/features.h5"

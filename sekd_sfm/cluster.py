@@ -255,8 +255,7 @@ class _TaskParts:
             if self.merge == "virtual":
                 if not items:
                     return "", ""
-                path = shards.write_shard(self.output, items, ff.write_image_group, self.writer)
-                self.meta = shards.describe(path)  # its own fresh file: read from the page cache
+                path, self.meta = shards.write_shard(self.output, items, ff.write_image_group, self.writer)
                 return path.name, ""
             # A new store per task, flushed only here: a failed write leaves nothing buffered behind.
             parts = ff.PartStore(self.output, max_items=len(items) + 1, max_bytes=1 << 62, max_seconds=math.inf,
@@ -628,8 +627,8 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
     try:
         args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker,
                 str(Path(output).resolve()), options.merge, str(claims.resolve()) if helper else "")
-        # Connecting (importing Ray and Ray Data, ~2 s of CPU) happens inside the drain, after the
-        # driver's helper has started extracting: the connection costs no extraction time.
+        # ray.init happens inside the drain, after the driver's helper has started extracting, so the
+        # driver extracts while it connects (docs/cluster.md, run H: no measurable change on 2 cores).
         results = _connected_stream(session, [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
         folder = shards.shard_root(output) if options.merge == "virtual" else None
         shard_meta: dict[str, dict] = {}

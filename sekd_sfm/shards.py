@@ -54,8 +54,9 @@ def shard_root(output: Path) -> Path:
 
 
 def write_shard(output: Path, items: list[tuple[str, dict[str, np.ndarray]]], write_group: WriteGroup,
-                writer: str = "") -> Path:
-    """Write ``items`` (key, arrays) as one shard of ``output`` with ``write_group``; returns its path.
+                writer: str = "") -> tuple[Path, dict[str, dict]]:
+    """Write ``items`` (key, arrays) as one shard of ``output`` with ``write_group``; returns its path and
+    its ``describe()`` (made while writing: the worker sends it, no second read of the shard).
 
     Durable before it is visible (``fsio.atomic_output``: temporary name, fsync, rename, folder
     fsync), so a merge never references a shard a crash could still lose. Holds its items'
@@ -66,10 +67,11 @@ def write_shard(output: Path, items: list[tuple[str, dict[str, np.ndarray]]], wr
     with atomic_output(target) as tmp, h5py.File(tmp, "w") as f:
         for key, arrays in items:
             write_group(f, key, arrays)
+        described = _describe_open(f)
         linker = _Linker()
-        for key, described in _describe_open(f).items():
-            linker.link_group(f, key, described, source, at=f"{LINKS}/{key}")
-    return target
+        for key, arrays in described.items():
+            linker.link_group(f, key, arrays, source, at=f"{LINKS}/{key}")
+    return target, described
 
 
 def shard_files(output: Path) -> list[Path]:

@@ -520,8 +520,9 @@ def test_baseline_above_its_mapping_limit_stops_after_verification_and_reports_d
         if not skipped:
             stages["map"] = {"time_s": size ** 2, "cpu_s": size ** 2}
         run = {"stages": stages, "wall_s": size + (0 if skipped else size ** 2),
-               "registered": None if skipped else size, "scene_images": size, "registered_distractors": [], "auc5": None, "auc5_covisible": None,
-               "median_pose_error_deg": None, "peak_rss_mb": 1, "written_mb": 1, "failure": None,
+               "registered": None if skipped else size, "scene_images": size, "registered_distractors": [],
+               "auc5": None, "auc5_covisible": None, "median_pose_error_deg": None, "peak_rss_mb": 1,
+               "written_mb": 1, "failure": None,
                "skipped": ["map"] if skipped else []}
         run["cpu_s"] = run["wall_s"]
         return {"size": size, "distractors": [], "pairs": {"pairs": 1, "recall": 1.0}, "pycolmap": run}

@@ -143,13 +143,13 @@ def test_merge_references_described_shards_without_opening_them(tmp_path, monkey
 
 
 def _virtual_layout(path, key):
-    """Per array of ``key``: dtype, shape, fill value (NaN as a string), attributes and the VDS source (file, dataset)."""
+    """Per array of ``key``: dtype, shape, fill value (NaN as a string), attributes, VDS source (file, dataset)."""
     with h5py.File(path, "r") as f:
         out = {}
         for name, d in f[key].items():
             (source,) = d.virtual_sources()
             fill = d.fillvalue
-            out[name] = (d.dtype.str, d.shape, "nan" if fill != fill else fill, dict(d.attrs),
+            out[name] = (d.dtype.str, d.shape, "nan" if np.isnan(fill) else fill, dict(d.attrs),
                          source.file_name, source.dset_name)
         return out
 

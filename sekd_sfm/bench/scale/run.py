@@ -298,8 +298,9 @@ def run_pycolmap(scene_dir: Path, work: Path, pairs: list[tuple[str, str]], num_
         pairs_path.write_text(format_pairs(pairs))
     steps = [("extract", _colmap_extract, (database, images, max_image_size, num_threads)),
              ("match", _colmap_match, (database, str(pairs_path) if pairs_path else None, num_threads)),
-             ("verify", _colmap_verify, (database, num_threads)),
-             ("map", _colmap_map, (database, images, str(work / "model"), seed))][:4 if map_stage else 3]
+             ("verify", _colmap_verify, (database, num_threads))]
+    if map_stage:
+        steps.append(("map", _colmap_map, (database, images, str(work / "model"), seed)))
     stages, failure, wall, cpu, peak, written = {}, None, 0.0, 0.0, 0, 0
     for stage, target, args in steps:
         m = run_measured(target, args, work / f"measure-{stage}.json")
