@@ -41,6 +41,11 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
                              max_keypoints, num_threads)
     click.echo(f"{result['images']} images at {height}x{width}, {result['threads']} threads, "
                f"{result['gflop_per_image']:.1f} GFLOP per SEKD image, auto precision = {result['precision_auto']}")
+    cpu = result["cpu"]
+    have = [name for name, present in cpu["features"].items() if present]
+    missing = [name for name, present in cpu["features"].items() if not present]
+    click.echo(f"cpu: {cpu['model']}, {cpu['cores']} cores; has {' '.join(have) or 'none of'}"
+               + (f"; lacks {' '.join(missing)}" if missing else "") + f"; torch kernels {cpu['torch_kernels']}")
     for name, rate in result["images_per_s"].items():
         gflops = result["gflop_per_s"].get(name)
         click.echo(f"  {name:<18}{rate:7.2f} images/s" + (f"  {gflops:6.1f} GFLOP/s" if gflops else ""))
@@ -50,7 +55,10 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
     if "lite_vs_sift" in result:  # SEKD-Lite rows (docs/model_card_lite.md); agreement is against Lite fp32
         click.echo(f"  lite auto ({result['precision_lite_auto']})/SIFT {result['lite_vs_sift']:.2f}x   "
                    f"lite fp32/SIFT {result['lite_fp32_vs_sift']:.2f}x   {result['lite_gflop_per_image']:.1f} GFLOP per Lite image")
-    for key in ("agreement_fast_fp32", "agreement_fast_auto", "agreement_int8", "agreement_lite_auto"):
+    if "lite_int8_vs_lite_fp32" in result:
+        click.echo(f"  lite int8/lite fp32 {result['lite_int8_vs_lite_fp32']:.2f}x")
+    for key in ("agreement_fast_fp32", "agreement_fast_auto", "agreement_int8", "agreement_lite_auto",
+                "agreement_lite_int8"):
         if key not in result:  # int8: only with the optional extra installed
             continue
         a = result[key]

@@ -2,25 +2,20 @@
 from __future__ import annotations
 
 import os
-import platform
 
 import click
 import torch
 
 from sekd_sfm.failures import DEBUG_VARIABLE, debug_enabled
 from sekd_sfm.images import DEFAULT_MAX_PIXELS
-from sekd_sfm.runtime import cpu_flags, cpu_has_fast_bf16, package_versions
+from sekd_sfm.runtime import (
+    CPU_FEATURES,
+    cpu_flags,
+    cpu_has_fast_bf16,
+    cpu_model,
+    package_versions,
+)
 from sekd_sfm.weights import EMBEDDED_MODEL, file_sha256
-
-CPU_FEATURES = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16", "amx_int8")
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next((l.split(":", 1)[1].strip() for l in f if l.startswith("model name")), platform.processor())
-    except OSError:
-        return platform.processor() or "unknown"
 
 
 @click.command()
@@ -29,7 +24,7 @@ def doctor() -> None:
     for name, version in package_versions().items():
         click.echo(f"{name:<18}{version}")
     flags = cpu_flags()
-    click.echo(f"{'cpu':<18}{_cpu_model()}")
+    click.echo(f"{'cpu':<18}{cpu_model()}")
     click.echo(f"{'cpu features':<18}" + " ".join(f"{f}:{'yes' if f in flags else 'no'}" for f in CPU_FEATURES))
     click.echo(f"{'torch cpu kernels':<18}{torch.backends.cpu.get_cpu_capability()}")
     click.echo(f"{'threads':<18}{torch.get_num_threads()} intra-op (set with --num-threads)")

@@ -92,6 +92,27 @@ def cpu_flags() -> frozenset[str]:
     return frozenset()
 
 
+#: The CPU features that decide which precision is fast (``sekd doctor``, ``sekd bench speed``).
+CPU_FEATURES = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16", "amx_int8")
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), else what ``platform`` knows."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")),
+                        platform.processor() or "unknown")
+    except OSError:
+        return platform.processor() or "unknown"
+
+
+def cpu_description() -> dict:
+    """The machine type a speed figure belongs to: model name, ``CPU_FEATURES`` present, torch's kernel level."""
+    flags = cpu_flags()
+    return {"model": cpu_model(), "features": {name: name in flags for name in CPU_FEATURES},
+            "torch_kernels": torch.backends.cpu.get_cpu_capability(), "cores": os.cpu_count()}
+
+
 def cpu_has_fast_bf16() -> bool:
     """True when the CPU computes bf16 natively (AVX512-BF16 or AMX), where bf16 is ~3x fp32."""
     flags = cpu_flags()

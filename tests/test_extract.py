@@ -1,5 +1,6 @@
 """`sekd extract`: file layout, resume after a crash, bad input, CLI."""
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -9,6 +10,7 @@ import cv2
 import h5py
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 from conftest import SEKD_WEIGHTS
 from sekd_sfm.cli.main import sekd
@@ -190,6 +192,17 @@ def test_cli_version_and_doctor():
     assert runner.invoke(sekd, ["--version"]).output.startswith("sekd, version")
     result = runner.invoke(sekd, ["doctor"])
     assert result.exit_code == 0 and "avx512_bf16" in result.output and "embedded model" in result.output
+
+
+def test_cpu_description_matches_the_flags_the_kernel_reports():
+    from sekd_sfm.runtime import CPU_FEATURES, cpu_description, cpu_flags
+
+    described = cpu_description()
+    flags = cpu_flags()
+    assert list(described["features"]) == list(CPU_FEATURES)
+    assert all(present == (name in flags) for name, present in described["features"].items())
+    assert described["model"] and described["cores"] == os.cpu_count()
+    assert described["torch_kernels"] == torch.backends.cpu.get_cpu_capability()
 
 
 def test_sigterm_stops_cleanly_and_the_next_run_completes(tmp_path):

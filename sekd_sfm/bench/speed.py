@@ -1,5 +1,5 @@
 """``sekd bench speed``: images/s at a fixed size for plain fp32, the fast path, int8 (optional extra),
-SEKD-Lite (fast fp32 and the precision ``auto`` picks) and OpenCV SIFT.
+SEKD-Lite (fast fp32, the precision ``auto`` picks, int8) and OpenCV SIFT.
 
 All methods run in the same process on the same decoded images, so their ratios are
 meaningful on a noisy machine. The plain path runs first, before the fast path tunes
@@ -18,7 +18,7 @@ from torch import nn
 from ..images import list_images, read_image
 from ..inference import SEKDConfig, SEKDExtractor, nms_keypoints, sample_descriptors
 from ..network import SEKDNet
-from ..runtime import package_versions, set_num_threads
+from ..runtime import cpu_description, package_versions, set_num_threads
 
 
 def count_macs(net: nn.Module, height: int, width: int) -> int:
@@ -138,6 +138,9 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
     if lite is not None:
         factories["sekd lite fp32"] = lambda: SEKDExtractor(lite, SEKDConfig(**{**config.as_dict(), "precision": "fp32"}))
         factories["sekd lite auto"] = lambda: SEKDExtractor(lite, config)
+        if int8.available():  # Lite quantized like the full network (its own calibration, cached)
+            factories["sekd lite int8"] = lambda: SEKDExtractor(lite, SEKDConfig(**{**config.as_dict(),
+                                                                                   "precision": "int8"}))
     rates, outputs, methods = {}, {}, {}
     for name, factory in factories.items():
         methods[name] = factory()
@@ -151,11 +154,14 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
     gflop_of = {name: gflop for name in rates}
     if lite is not None:
         lite_gflop = 2 * count_macs(lite, height, width) / 1e9
-        gflop_of.update({"sekd lite fp32": lite_gflop, "sekd lite auto": lite_gflop})
+        gflop_of.update({name: lite_gflop for name in rates if name.startswith("sekd lite")})
         extra.update({"lite_gflop_per_image": lite_gflop, "precision_lite_auto": methods["sekd lite auto"].model.precision,
                       "lite_vs_sift": rates["sekd lite auto"] / rates["opencv sift"],
                       "lite_fp32_vs_sift": rates["sekd lite fp32"] / rates["opencv sift"],
                       "agreement_lite_auto": agreement(outputs["sekd lite fp32"], outputs["sekd lite auto"])})
+        if "sekd lite int8" in rates:
+            extra.update({"lite_int8_vs_lite_fp32": rates["sekd lite int8"] / rates["sekd lite fp32"],
+                          "agreement_lite_int8": agreement(outputs["sekd lite fp32"], outputs["sekd lite int8"])})
     return {
         "images": count, "size": [height, width], "threads": threads, "gflop_per_image": gflop,
         "precision_auto": methods[fast].model.precision,
@@ -166,5 +172,6 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
         "agreement_fast_fp32": agreement(outputs["sekd plain fp32"], outputs["sekd fast fp32"]),
         "agreement_fast_auto": agreement(outputs["sekd plain fp32"], outputs[fast]),
         **extra,
+        "cpu": cpu_description(),  # which machine type the rates belong to
         "versions": package_versions(),
     }
