@@ -22,7 +22,7 @@ from .images import (
     load_scaled,
     to_original_pixels,
 )
-from .runtime import package_versions, set_num_threads
+from .runtime import package_versions, set_num_threads, untune_allocator
 
 logger = logging.getLogger("sekd")
 #: Images decoded ahead of the network, on a background thread (OpenCV releases the GIL).
@@ -113,8 +113,11 @@ def extract_features(
     image_dir, output = Path(image_dir), Path(output)
     cluster.check_executor(executor, ray_options)
     with ff.writer_lock(output, "features file"):
-        return _extract(image_dir, output, config, overwrite, strict, num_threads, progress, checkpoint_seconds,
-                        executor, ray_options)
+        try:
+            return _extract(image_dir, output, config, overwrite, strict, num_threads, progress, checkpoint_seconds,
+                            executor, ray_options)
+        finally:  # the network is gone: what runs next in this process (pairs, matching) needs glibc's own heap rules
+            untune_allocator()
 
 
 def _extract(image_dir: Path, output: Path, config: FeatureConfig, overwrite: bool, strict: bool,

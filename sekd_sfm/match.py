@@ -159,11 +159,14 @@ def _nearest_two(dist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.
 
 
 def match_batch(a0: torch.Tensor, a1t: torch.Tensor, n0: torch.Tensor, binary: bool, mode: str,
-                ratio: float | None, max_elements: int = 1 << 25) -> tuple[torch.Tensor, torch.Tensor]:
+                ratio: float | None, max_elements: int = 1 << 25,
+                workspace: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Match a batch of pairs given as augmented factors (``stack_rows`` / ``stack_cols``).
 
     ``a0`` B x N0 x (D+2), ``a1t`` B x (D+2) x N1, ``n0`` (B) the real row counts. Rows are
-    processed in chunks of at most ``max_elements`` distances. Returns ``matches0`` B x N0
+    processed in chunks of at most ``max_elements`` distances. ``workspace``: a 1-D tensor
+    (``a0``'s dtype and device) the distances are computed into when they fit, kept by the
+    caller from batch to batch (``DescriptorCache.workspace``). Returns ``matches0`` B x N0
     (long, -1 = unmatched) and ``scores0`` B x N0 = 1 - d1/d2 for kept matches, else 0.
     """
     B, N0, N1 = a0.shape[0], a0.shape[1], a1t.shape[2]
@@ -174,7 +177,12 @@ def match_batch(a0: torch.Tensor, a1t: torch.Tensor, n0: torch.Tensor, binary: b
     arg = torch.zeros((B, N0), dtype=torch.long, device=a0.device)
     col_best = a0.new_full((B, N1), torch.inf)
     for r0 in range(0, N0, rows):
-        dist = distances(a0[:, r0:r0 + rows], a1t)
+        chunk = a0[:, r0:r0 + rows]
+        size = B * chunk.shape[1] * N1
+        if workspace is not None and size <= workspace.numel():
+            dist = torch.bmm(chunk, a1t, out=workspace[:size].view(B, chunk.shape[1], N1))
+        else:
+            dist = distances(chunk, a1t)
         col_best = torch.minimum(col_best, dist.amin(1))
         best[:, r0:r0 + rows], arg[:, r0:r0 + rows], second[:, r0:r0 + rows] = _nearest_two(dist)
     return _select(best, arg, second, col_best, binary, mode, ratio)
@@ -222,6 +230,19 @@ class DescriptorCache:
     def __init__(self, f: h5py.File, binary: bool, rootsift: bool, device: torch.device, capacity: int = CACHE_IMAGES):
         self.f, self.binary, self.rootsift, self.device, self.capacity = f, binary, rootsift, device, capacity
         self.items: OrderedDict[str, tuple[torch.Tensor, torch.Tensor]] = OrderedDict()
+        self._workspace: torch.Tensor | None = None
+
+    def workspace(self, elements: int) -> torch.Tensor:
+        """A float32 buffer of ``elements`` for the distance matrices, allocated once and reused batch after batch.
+
+        A fresh matrix per batch (up to 128 MB) costs a mapping and the kernel's zeroing of
+        every page each time, or, where the heap keeps large blocks, a heap that fragments as
+        the shapes change (docs/benchmarks.md, Large scenes: peak RSS); one buffer costs neither.
+        """
+        if self._workspace is None or self._workspace.numel() < elements:
+            self._workspace = None  # the old one goes before the new one is allocated
+            self._workspace = torch.empty(elements, dtype=torch.float32, device=self.device)
+        return self._workspace
 
     def __getitem__(self, key: str) -> tuple[torch.Tensor, torch.Tensor]:
         if key in self.items:
@@ -410,7 +431,8 @@ def _run(features, todo, sizes, binary, described, config, parts, output, progre
 def _match_and_save(batch, cache, binary, described, config, parts) -> None:
     a0, n0 = stack_rows([cache[a][0] for a, _ in batch])
     a1t, _ = stack_cols([cache[b][1] for _, b in batch])
-    matches, scores = match_batch(a0, a1t, n0, binary, described["mode"], described["ratio"], config.max_elements)
+    matches, scores = match_batch(a0, a1t, n0, binary, described["mode"], described["ratio"], config.max_elements,
+                                  cache.workspace(config.max_elements))
     matches, scores = matches.cpu().numpy(), scores.cpu().numpy()
     for i, (a, b) in enumerate(batch):
         n = int(n0[i])

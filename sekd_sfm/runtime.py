@@ -23,6 +23,10 @@ DEVICES = ("auto", "cpu", "cuda")
 # glibc mallopt parameters (malloc.h).
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
+#: glibc's own ceilings (mallopt(3)): its dynamic mmap threshold rises to 32 MiB at most on 64-bit,
+#: and the trim threshold follows it at twice that.
+_GLIBC_MMAP_THRESHOLD_MAX = 32 << 20
+_GLIBC_TRIM_THRESHOLD_MAX = 64 << 20
 
 
 @lru_cache(maxsize=1)
@@ -42,6 +46,32 @@ def tune_allocator() -> bool:
         return ok and libc.mallopt(_M_TRIM_THRESHOLD, (1 << 31) - 1) == 1
     except (OSError, AttributeError):
         return False
+
+
+def untune_allocator() -> bool:
+    """Undo ``tune_allocator`` once the network's work is done, and give the freed heap back to the OS.
+
+    With the network's thresholds every allocation under 1 GB comes from the heap, which is
+    never trimmed: what extraction, the retrieval vocabulary or the matching free stays in the
+    process, and the matching's distance matrices (up to 128 MB, of shapes that change from
+    batch to batch) no longer fit the holes they leave, so the heap grows for as long as the
+    matching runs (2,000 generated photos in one ``sekd reconstruct``: 17 GB peak in the
+    matching stage, against 2.3 GB for ``sekd match`` alone). Back at glibc's ceilings, large
+    arrays are mapped and unmapped again. A later ``tune_allocator`` call tunes anew.
+    Returns True when the allocator had been tuned in this process.
+    """
+    tuned = tune_allocator.cache_info().currsize > 0 and tune_allocator()  # cached: glibc is not called again
+    tune_allocator.cache_clear()
+    if not tuned:
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(_M_MMAP_THRESHOLD, _GLIBC_MMAP_THRESHOLD_MAX)
+        libc.mallopt(_M_TRIM_THRESHOLD, _GLIBC_TRIM_THRESHOLD_MAX)
+        libc.malloc_trim(0)
+    except (OSError, AttributeError):
+        return False
+    return True
 
 
 def shared_dir() -> Path:

@@ -252,3 +252,41 @@ def test_cli_keypoints_are_sub_pixel_by_default_and_integer_with_no_subpixel(ima
     assert np.array_equal(integer, np.round(integer))  # the peak's pixel centre
     assert (refined != np.round(refined)).mean() > 0.5  # most keypoints move off the pixel centre
     assert np.abs(refined - np.round(refined)).max() <= 1.0 and len(refined) == len(integer)
+
+
+HEAP_PROBE = """
+import sys
+import numpy as np
+from sekd_sfm.extract import extract_features
+from sekd_sfm.features import FeatureConfig
+from sekd_sfm.runtime import tune_allocator
+
+def rss():
+    return int(next(l for l in open("/proc/self/status") if l.startswith("VmRSS")).split()[1]) * 1024
+
+if sys.argv[1] == "extract":  # the network tunes the allocator, extract_features undoes it at the end
+    extract_features(sys.argv[2], sys.argv[3], FeatureConfig(feature="sekd", max_keypoints=100), progress=False)
+else:  # control: the network's thresholds left in place
+    tune_allocator()
+before = rss()
+block = np.ones(256 << 20, dtype=np.uint8)  # 256 MB, touched
+del block
+print((rss() - before) >> 20)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator (mallopt) and /proc")
+def test_extraction_gives_the_heap_back_to_the_stages_after_it(tmp_path):
+    """After extract_features a freed 256 MB array leaves the process; under the network's thresholds it stays."""
+    images = write_images(tmp_path / "im", ["a.png", "b.png"])
+
+    def kept_mb(*args):
+        done = subprocess.run([sys.executable, "-c", HEAP_PROBE, *args], capture_output=True, text=True, timeout=300,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+        assert done.returncode == 0, done.stderr
+        return int(done.stdout.split()[-1])
+
+    assert kept_mb("tuned") >= 200  # the heap keeps what was freed: the case the untuning exists for
+    assert kept_mb("extract", str(images), str(tmp_path / "f.h5")) < 32
+    with h5py.File(tmp_path / "f.h5", "r") as f:
+        assert sorted(f) == ["a.png", "b.png"]
