@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from sekd_sfm.bench.methods import with_weights
 from sekd_sfm.bench.speed import benchmark_speed
 from sekd_sfm.runtime import PRECISIONS, shared_dir
 from sekd_sfm.weights import load_model
@@ -71,7 +72,8 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
 @click.argument("roots", nargs=-1, type=click.Path(file_okay=False, path_type=Path))
 @click.option("-m", "--method", "methods", multiple=True,
               help="[LABEL=]FEATURE[:WEIGHTS], repeatable: sift, orb, akaze, brisk, kaze, disk, aliked, xfeat, "
-                   "sekd (the default embedded model), sekd:own, sekd:authors, sekd:PATH. Default: every classic and "
+                   "sekd (the --model / --weights model, else the default), sekd:own, sekd:authors, sekd:lite, sekd:PATH. "
+                   "Default: every classic and "
                    "peer, plus sekd:--weights if given.")
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=Path("bench-homography"),
               show_default=True, help="Folder for results.json, results.md, plots and the prediction cache.")
@@ -94,7 +96,7 @@ def homography(roots, methods, output, resize_max, max_keypoints, precision, wei
     from sekd_sfm.bench.methods import parse_method
 
     roots = list(roots) or [shared_dir() / "data/homography/hpatches", shared_dir() / "data/homography/oxford"]
-    specs = list(methods) or DEFAULT_METHODS + ([f"sekd:{weights}"] if weights else [])
+    specs = method_specs(methods, weights)
     config = HomographyConfig(resize_max=resize_max or None, max_keypoints=max_keypoints, precision=precision)
     path = run_homography_benchmark(roots, [parse_method(m) for m in specs], output, config)
     click.echo((path.parent / "results.md").read_text())
@@ -102,6 +104,14 @@ def homography(roots, methods, output, resize_max, max_keypoints, precision, wei
 
 
 DEFAULT_METHODS = ["sift", "orb", "akaze", "brisk", "kaze", "disk", "aliked", "xfeat"]
+
+
+
+def method_specs(methods: tuple[str, ...], weights: str | None) -> list[str]:
+    """The ``-m`` list to run: every classic and peer plus ``sekd:WEIGHTS`` when none is given."""
+    if not methods:
+        return DEFAULT_METHODS + ([f"sekd:{weights}"] if weights else [])
+    return with_weights(methods, weights)
 
 
 @bench.command()
@@ -127,7 +137,7 @@ def pose(scenes, methods, output, max_keypoints, resize_max, precision, weights)
     from sekd_sfm.bench.pose import PoseConfig, run_pose_benchmark
 
     scenes = list(scenes) or [shared_dir() / "data/sfm/fountain-P11"]
-    specs = list(methods) or DEFAULT_METHODS + ([f"sekd:{weights}"] if weights else [])
+    specs = method_specs(methods, weights)
     config = PoseConfig(max_keypoints=max_keypoints, resize_max=resize_max or None, precision=precision)
     path = run_pose_benchmark(scenes, [parse_method(m) for m in specs], output, config)
     click.echo((path.parent / "results.md").read_text())

@@ -54,7 +54,7 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
       sekd bench sfm fountain-P11 --feature sift --max-keypoints 8000
       sekd bench sfm fountain-P11 -m sift -m disk -m sekd:../shared/weights/sekd/sekd.pth
     """
-    from sekd_sfm.bench.methods import available, parse_method
+    from sekd_sfm.bench.methods import available, parse_method, with_weights
     from sekd_sfm.bench.sfm import benchmark_sfm
     from sekd_sfm.pairs import PairsConfig
     from sekd_sfm.sfm.database import CameraConfig
@@ -68,7 +68,7 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
         mapper=list(mapper), seed=seed)
     config.refine.enabled = refine
     report = benchmark_sfm(scene, output or Path(f"bench-sfm-{Path(scene).name}"), config, baseline=not no_baseline,
-                           num_threads=num_threads, methods=available([parse_method(m) for m in methods]))
+                           num_threads=num_threads, methods=available([parse_method(m) for m in with_weights(methods, weights)]))
     from sekd_sfm.bench.sfm import sfm_markdown
 
     click.echo(sfm_markdown(report))

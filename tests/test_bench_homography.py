@@ -84,6 +84,18 @@ def test_parse_method():
         parse_method("surf")
 
 
+def test_a_bare_sekd_method_takes_the_model_of_model_or_weights():
+    from sekd_sfm.bench.methods import with_weights
+    from sekd_sfm.cli.bench import method_specs
+
+    assert with_weights(("sift", "sekd", "mine=sekd", "sekd:own", "sekd:/w/x.pth"), "/m/sekd_lite.pth") == [
+        "sift", "sekd:/m/sekd_lite.pth", "mine=sekd:/m/sekd_lite.pth", "sekd:own", "sekd:/w/x.pth"]
+    assert with_weights(("sekd",), None) == ["sekd"]  # no --model / --weights: the default model
+    assert parse_method(with_weights(["sekd"], "/m/sekd_lite.pth")[0]) == Method("sekd_lite", "sekd", "/m/sekd_lite.pth")
+    assert method_specs((), None)[-1] == "xfeat" and method_specs((), "/m/a.pth")[-1] == "sekd:/m/a.pth"
+    assert parse_method("sekd:lite").weights.endswith("sekd_lite.pth")  # the embedded Lite by name
+
+
 def test_tiny_end_to_end_with_a_pure_translation(tmp_path):
     make_sequence(tmp_path / "data", "v_shift")
     out = run_homography_benchmark([tmp_path / "data"], [parse_method("sift"), parse_method("orb")], tmp_path / "out",

@@ -46,6 +46,17 @@ class Method:
                              sekd=sekd if self.feature == "sekd" else SEKDConfig(max_keypoints=max_keypoints))
 
 
+def with_weights(specs, weights: str | None) -> list[str]:
+    """Method specs with a bare ``sekd`` (or ``LABEL=sekd``) bound to ``weights`` when given.
+
+    ``--model lite -m sekd`` then means SEKD-Lite, as ``--model`` means in every other
+    command; ``sekd:own``, ``sekd:PATH`` and other features stay as written.
+    """
+    if not weights:
+        return list(specs)
+    return [f"{spec}:{weights}" if spec.rpartition("=")[2] == "sekd" else spec for spec in specs]
+
+
 def parse_method(text: str) -> Method:
     """Parse ``[LABEL=]FEATURE[:WEIGHTS]``; SekdError for an unknown feature."""
     label, _, spec = text.rpartition("=") if "=" in text.split(":", 1)[0] else ("", "", text)
