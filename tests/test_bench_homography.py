@@ -85,8 +85,9 @@ def test_parse_method():
 
 
 def test_a_bare_sekd_method_takes_the_model_of_model_or_weights():
-    from sekd_sfm.bench.methods import with_weights
     from sekd_sfm.cli.bench import method_specs
+
+    from sekd_sfm.bench.methods import with_weights
 
     assert with_weights(("sift", "sekd", "mine=sekd", "sekd:own", "sekd:/w/x.pth"), "/m/sekd_lite.pth") == [
         "sift", "sekd:/m/sekd_lite.pth", "mine=sekd:/m/sekd_lite.pth", "sekd:own", "sekd:/w/x.pth"]
