@@ -73,8 +73,7 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
 @click.option("-m", "--method", "methods", multiple=True,
               help="[LABEL=]FEATURE[:WEIGHTS], repeatable: sift, orb, akaze, brisk, kaze, disk, aliked, xfeat, "
                    "sekd (the --model / --weights model, else the default), sekd:own, sekd:authors, sekd:lite, sekd:PATH. "
-                   "Default: every classic and "
-                   "peer, plus sekd:--weights if given.")
+                   "Default: every classic and peer, plus sekd:--weights if given.")
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=Path("bench-homography"),
               show_default=True, help="Folder for results.json, results.md, plots and the prediction cache.")
 @click.option("--resize-max", type=click.IntRange(min=0), default=640, show_default=True, help="Long side limit in px; 0 = full resolution.")
@@ -104,7 +103,6 @@ def homography(roots, methods, output, resize_max, max_keypoints, precision, wei
 
 
 DEFAULT_METHODS = ["sift", "orb", "akaze", "brisk", "kaze", "disk", "aliked", "xfeat"]
-
 
 
 def method_specs(methods: tuple[str, ...], weights: str | None) -> list[str]:

@@ -8,13 +8,7 @@ import torch
 
 from sekd_sfm.failures import DEBUG_VARIABLE, debug_enabled
 from sekd_sfm.images import DEFAULT_MAX_PIXELS
-from sekd_sfm.runtime import (
-    CPU_FEATURES,
-    cpu_flags,
-    cpu_has_fast_bf16,
-    cpu_model,
-    package_versions,
-)
+from sekd_sfm.runtime import cpu_description, cpu_has_fast_bf16, package_versions
 from sekd_sfm.weights import EMBEDDED_MODEL, file_sha256
 
 
@@ -23,10 +17,10 @@ def doctor() -> None:
     """Print library versions, CPU features, threads, and whether the embedded model and a GPU are found."""
     for name, version in package_versions().items():
         click.echo(f"{name:<18}{version}")
-    flags = cpu_flags()
-    click.echo(f"{'cpu':<18}{cpu_model()}")
-    click.echo(f"{'cpu features':<18}" + " ".join(f"{f}:{'yes' if f in flags else 'no'}" for f in CPU_FEATURES))
-    click.echo(f"{'torch cpu kernels':<18}{torch.backends.cpu.get_cpu_capability()}")
+    cpu = cpu_description()
+    click.echo(f"{'cpu':<18}{cpu['model']}")
+    click.echo(f"{'cpu features':<18}" + " ".join(f"{f}:{'yes' if yes else 'no'}" for f, yes in cpu["features"].items()))
+    click.echo(f"{'torch cpu kernels':<18}{cpu['torch_kernels']}")
     click.echo(f"{'threads':<18}{torch.get_num_threads()} intra-op (set with --num-threads)")
     click.echo(f"{'precision auto':<18}{'bf16 (native bf16 found)' if cpu_has_fast_bf16() else 'fp32'}")
     model = f"{EMBEDDED_MODEL} (sha256 {file_sha256(EMBEDDED_MODEL)})" if EMBEDDED_MODEL.is_file() else "not found: pass --weights"

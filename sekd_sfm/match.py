@@ -139,16 +139,17 @@ def stack_cols(factors: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]
     return out, counts
 
 
-def distances(a0: torch.Tensor, a1t: torch.Tensor) -> torch.Tensor:
+def distances(a0: torch.Tensor, a1t: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
     """``B x N0 x N1`` distances by one batched matmul of augmented factors, no further pass over the matrix.
 
     ``a0`` B x N0 x (D+2) rows ``[a, |a|^2, 1]`` and ``a1t`` B x (D+2) x N1 columns
     ``[-2b, 1, |b|^2]`` multiply to ``|a|^2 + |b|^2 - 2 a.b``: the squared L2 distance, or for
     0/1 bit rows the Hamming distance (exact integers in float32). Squared L2 may come out
     slightly negative by rounding. Padding (an infinite norm, zeros elsewhere, so that no
-    0 x inf product arises) gives infinite distances.
+    0 x inf product arises) gives infinite distances. ``out``: a ``B x N0 x N1`` tensor to
+    write them into (a reused buffer) instead of a new one.
     """
-    return torch.bmm(a0, a1t)
+    return torch.bmm(a0, a1t, out=out)
 
 
 def _nearest_two(dist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -179,10 +180,8 @@ def match_batch(a0: torch.Tensor, a1t: torch.Tensor, n0: torch.Tensor, binary: b
     for r0 in range(0, N0, rows):
         chunk = a0[:, r0:r0 + rows]
         size = B * chunk.shape[1] * N1
-        if workspace is not None and size <= workspace.numel():
-            dist = torch.bmm(chunk, a1t, out=workspace[:size].view(B, chunk.shape[1], N1))
-        else:
-            dist = distances(chunk, a1t)
+        fits = workspace is not None and size <= workspace.numel()
+        dist = distances(chunk, a1t, workspace[:size].view(B, chunk.shape[1], N1) if fits else None)
         col_best = torch.minimum(col_best, dist.amin(1))
         best[:, r0:r0 + rows], arg[:, r0:r0 + rows], second[:, r0:r0 + rows] = _nearest_two(dist)
     return _select(best, arg, second, col_best, binary, mode, ratio)

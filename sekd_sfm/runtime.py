@@ -38,12 +38,17 @@ def tune_allocator() -> bool:
     page on first touch. Raising the thresholds doubles fp32 throughput on a 2-core
     CPU (``sekd bench speed`` measures it). Returns False where glibc is absent.
     """
-    if not sys.platform.startswith("linux"):
-        return False
+    return sys.platform.startswith("linux") and _set_heap_thresholds(1 << 30, (1 << 31) - 1)
+
+
+def _set_heap_thresholds(mmap_bytes: int, trim_bytes: int, trim_now: bool = False) -> bool:
+    """glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` (and ``malloc_trim`` with ``trim_now``); False without glibc."""
     try:
         libc = ctypes.CDLL("libc.so.6")
-        ok = libc.mallopt(_M_MMAP_THRESHOLD, 1 << 30) == 1
-        return ok and libc.mallopt(_M_TRIM_THRESHOLD, (1 << 31) - 1) == 1
+        ok = libc.mallopt(_M_MMAP_THRESHOLD, mmap_bytes) == 1 and libc.mallopt(_M_TRIM_THRESHOLD, trim_bytes) == 1
+        if ok and trim_now:
+            libc.malloc_trim(0)
+        return ok
     except (OSError, AttributeError):
         return False
 
@@ -62,16 +67,7 @@ def untune_allocator() -> bool:
     """
     tuned = tune_allocator.cache_info().currsize > 0 and tune_allocator()  # cached: glibc is not called again
     tune_allocator.cache_clear()
-    if not tuned:
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(_M_MMAP_THRESHOLD, _GLIBC_MMAP_THRESHOLD_MAX)
-        libc.mallopt(_M_TRIM_THRESHOLD, _GLIBC_TRIM_THRESHOLD_MAX)
-        libc.malloc_trim(0)
-    except (OSError, AttributeError):
-        return False
-    return True
+    return tuned and _set_heap_thresholds(_GLIBC_MMAP_THRESHOLD_MAX, _GLIBC_TRIM_THRESHOLD_MAX, trim_now=True)
 
 
 def shared_dir() -> Path:
