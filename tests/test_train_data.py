@@ -24,10 +24,12 @@ from sekd_sfm.train.data import (
     labels_inverse,
     make_pair,
     random_affine,
+    random_warp,
     rng_for,
     sample,
     subset_indices,
     to_gray,
+    warp_grid,
 )
 
 IDENTITY = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -95,6 +97,45 @@ def test_random_affine_parameters_follow_the_spec():
     theta = random_affine(np.random.default_rng(0), cfg)
     a = np.deg2rad(30)
     assert np.allclose(theta, [[2 * np.cos(a), -2 * np.sin(a), 0.01], [2 * np.sin(a), 2 * np.cos(a), 0.01]])
+
+
+#: THETA with projective terms g = 0.1, h = -0.05.
+HOMOGRAPHY = np.vstack([THETA, [0.1, -0.05, 1.0]])
+
+
+def test_homography_grid_is_hand_computed():
+    # 2 x 2 image: pixel centres at normalised (-0.5, -0.5) ... (0.5, 0.5).
+    grid = warp_grid(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.5, 0.0, 1.0]]), 2, 2)
+    # x' = x / (0.5 x + 1), y' = y / (0.5 x + 1)
+    assert torch.allclose(grid[0, 0], torch.tensor([-0.5 / 0.75, -0.5 / 0.75]))
+    assert torch.allclose(grid[1, 1], torch.tensor([0.5 / 1.25, 0.5 / 1.25]))
+    assert torch.allclose(warp_grid(THETA, 5, 7), affine_grid(THETA, 5, 7))  # 2 x 3 stays affine
+
+
+def test_homography_beyond_its_vanishing_line_samples_nothing():
+    grid = warp_grid(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [2.0, 0.0, 1.0]]), 2, 4)
+    # x = -0.75: denominator 2 x + 1 = -0.5 < 0 -> outside; x = 0.75: inside.
+    assert (grid[:, 0] == 2.0).all() and (grid[:, 3].abs() < 1).all()
+
+
+def test_projective_warp_of_image_and_keypoint_agree():
+    h, w, x, y = 64, 80, 30, 25
+    warped = sample(blob(h, w, x, y)[None], warp_grid(HOMOGRAPHY, h, w))[0]
+    peak = torch.nonzero(warped == warped.max())[0]
+    corr = correspondences(HOMOGRAPHY, h, w)
+    assert (peak - corr[y, x]).abs().max() <= 1
+    label = labels_forward(np.array([[x, y]]), corr)
+    assert label.sum() == 1 and label[tuple(corr[y, x])] == 1
+
+
+def test_random_warp_without_perspective_is_the_affine_draw():
+    cfg = TrainConfig()
+    a, b = np.random.default_rng(3), np.random.default_rng(3)
+    assert np.array_equal(random_warp(a, cfg), random_affine(b, cfg))
+    assert a.uniform() == b.uniform()  # nothing more drawn: runs without perspective are unchanged
+    theta = random_warp(np.random.default_rng(3), dataclasses.replace(cfg, perspective=0.2))
+    assert theta.shape == (3, 3) and np.abs(theta[2, :2]).max() <= 0.2 and theta[2, 2] == 1
+    assert np.array_equal(theta[:2], random_affine(np.random.default_rng(3), cfg))
 
 
 def test_pair_labels_and_correspondences_agree():

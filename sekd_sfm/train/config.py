@@ -70,6 +70,7 @@ class TrainConfig:
     scale: list[float] = field(default_factory=lambda: [0.7, 1.4])
     isotropic_scale: bool = False    # [code] sx, sy drawn independently; True: one draw for both
     translation: list[float] = field(default_factory=lambda: [-0.04, 0.04])  # normalised units
+    perspective: float = 0.0         # training pairs: projective terms up to this (normalised units); 0 = affine, the spec
     label_warp: str = "forward"      # forward = paper's Y^ = H(Y); inverse = the code's defect
     crop_height: int = 192
     crop_width: int = 192

@@ -124,16 +124,55 @@ def random_affine(rng: np.random.Generator, cfg: TrainConfig) -> np.ndarray:
     return np.array([[sx * np.cos(a), -sy * np.sin(a + s), tx], [sx * np.sin(a), sy * np.cos(a + s), ty]])
 
 
+def random_warp(rng: np.random.Generator, cfg: TrainConfig) -> np.ndarray:
+    """The warp of a training pair: ``random_affine``, with projective terms when ``cfg.perspective`` > 0.
+
+    With perspective ``p`` the 2 x 3 affine map ``A`` becomes the 3 x 3 homography
+    ``[[A], [g, h, 1]]`` with ``g, h`` uniform in ``[-p, p]`` (normalised coordinates): across
+    the view the local scale then changes by up to ``(1 + 2p) / (1 - 2p)``, a viewpoint change the
+    affine warps of the specification do not make. ``p = 0`` draws nothing more, so runs without
+    it are unchanged.
+    """
+    theta = random_affine(rng, cfg)
+    if cfg.perspective <= 0:
+        return theta
+    g, h = rng.uniform(-cfg.perspective, cfg.perspective, 2)
+    return np.vstack([theta, [g, h, 1.0]])
+
+
 def invert_affine(theta: np.ndarray) -> np.ndarray:
     """The inverse of a 2 x 3 affine map."""
     inverse = np.linalg.inv(np.vstack([theta, [0.0, 0.0, 1.0]]))
     return inverse[:2]
 
 
+def invert_warp(theta: np.ndarray) -> np.ndarray:
+    """The inverse of a 2 x 3 affine map or of a 3 x 3 homography (normalised so its last entry is 1)."""
+    if theta.shape == (2, 3):
+        return invert_affine(theta)
+    inverse = np.linalg.inv(theta)
+    return inverse / inverse[2, 2]
+
+
 def affine_grid(theta: np.ndarray, height: int, width: int) -> torch.Tensor:
     """``H x W x 2`` normalised locations ``theta p`` for every pixel centre p (``align_corners=False``)."""
     t = torch.as_tensor(theta, dtype=torch.float32)[None]
     return F.affine_grid(t, [1, 1, height, width], align_corners=False)[0]
+
+
+def warp_grid(theta: np.ndarray, height: int, width: int) -> torch.Tensor:
+    """``affine_grid`` for a 2 x 3 affine map or a 3 x 3 homography (normalised coordinates).
+
+    Where a homography's denominator is not positive (beyond its vanishing line) the location
+    is put outside the image, so nothing is sampled or matched there.
+    """
+    if theta.shape == (2, 3):
+        return affine_grid(theta, height, width)
+    base = affine_grid(np.eye(3)[:2], height, width).double()
+    points = base @ torch.as_tensor(theta[:, :2].T) + torch.as_tensor(theta[:, 2])
+    depth = points[..., 2:]
+    outside = torch.full_like(points[..., :2], 2.0)
+    return torch.where(depth > 1e-6, points[..., :2] / depth.clamp(min=1e-6), outside).float()
 
 
 def sample(image: torch.Tensor, grid: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
@@ -153,7 +192,7 @@ def pixel_of(grid: torch.Tensor, height: int, width: int) -> torch.Tensor:
 
 def correspondences(theta: np.ndarray, height: int, width: int) -> torch.Tensor:
     """``H x W x 2`` long: pixel (row, col) in the warped view of every target pixel, -1 if it falls outside."""
-    return pixel_of(affine_grid(invert_affine(theta), height, width), height, width)
+    return pixel_of(warp_grid(invert_warp(theta), height, width), height, width)
 
 
 def labels_forward(keypoints: np.ndarray, corr: torch.Tensor) -> torch.Tensor:
@@ -170,7 +209,7 @@ def labels_forward(keypoints: np.ndarray, corr: torch.Tensor) -> torch.Tensor:
 
 def labels_inverse(label0: torch.Tensor, theta: np.ndarray) -> torch.Tensor:
     """The authors' code: nearest-sample Y at G, which applies the inverse warp (kept for comparison)."""
-    grid = affine_grid(invert_affine(theta), *label0.shape)
+    grid = warp_grid(invert_warp(theta), *label0.shape)
     return sample(label0[None], grid, mode="nearest")[0]
 
 
@@ -185,12 +224,12 @@ def keypoint_map(keypoints: np.ndarray, height: int, width: int) -> torch.Tensor
 
 def make_view(rgb_u8: np.ndarray, rng: np.random.Generator, cfg: TrainConfig, theta: np.ndarray | None,
               jitter: bool = True) -> torch.Tensor:
-    """Colour jitter -> affine warp (bilinear, zero fill, truncated to 8 bits) -> grayscale: ``1 x H x W``."""
+    """Colour jitter -> warp (affine or projective; bilinear, zero fill, truncated to 8 bits) -> grayscale: ``1 x H x W``."""
     rgb = torch.from_numpy(rgb_u8).permute(2, 0, 1).float()
     if jitter:
         rgb = color_jitter(rgb, rng, cfg)
     if theta is not None:
-        rgb = sample(rgb, affine_grid(theta, *rgb.shape[1:])).floor()
+        rgb = sample(rgb, warp_grid(theta, *rgb.shape[1:])).floor()
     return to_gray(rgb)
 
 
@@ -217,7 +256,7 @@ def make_pair(rgb_u8: np.ndarray, keypoints: np.ndarray, rng: np.random.Generato
     """
     height, width = rgb_u8.shape[:2]
     image0 = make_view(rgb_u8, rng, cfg, None, jitter=cfg.jitter_target)
-    theta = random_affine(rng, cfg)
+    theta = random_warp(rng, cfg)
     image1 = make_view(rgb_u8, rng, cfg, theta)
     corr = correspondences(theta, height, width)
     label0 = keypoint_map(keypoints, height, width)
