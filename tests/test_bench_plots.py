@@ -67,7 +67,7 @@ def test_every_results_folder_and_every_listed_figure_is_drawn(tmp_path):
 def test_homography_legend_sits_below_the_axes(tmp_path):
     _write(tmp_path / "hom/results.json", _homography({f"m{i}": i / 20 for i in range(16)}))
     (png,) = [p for p in regenerate_plots(tmp_path) if p.name == "homography_accuracy.png"]
-    height, width = matplotlib.image.imread(png).shape[:2]
+    height, _width = matplotlib.image.imread(png).shape[:2]
     assert height > 4 * 110  # the 4-inch axes plus the legend rows under them
 
 

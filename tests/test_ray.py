@@ -138,7 +138,7 @@ def test_extract_on_ray_identical_to_local(cluster, local_run, tmp_path, merge):
                          check=False, capture_output=True, text=True, timeout=180)
     assert run.returncode == 0, run.stderr[-3000:]
     with h5py.File(out, "r") as f:  # virtual: the file references the workers' shard files
-        assert f[f"{sorted(f.keys())[0]}/descriptors"].is_virtual == (merge == "virtual")
+        assert f[f"{min(f.keys())}/descriptors"].is_virtual == (merge == "virtual")
     assert "broken.jpg: not a decodable image" in run.stdout + run.stderr  # reported like any unreadable image
     assert _contents(out) == _contents(features)  # same keys, same arrays, byte for byte
     assert _attrs(out) == _attrs(features)

@@ -67,8 +67,8 @@ def test_too_few_matches(tmp_path):
         cv2.imwrite(str(tmp_path / name), np.full((64, 80), 128, np.uint8))
     result, errors = run(tmp_path / "a.png", tmp_path / "b.png", "--feature", "sift")
     assert result.exit_code == 1
-    assert errors == ["Error: too few matches for a relative pose: 0 and 0 keypoints, 0 matches (need 15); "
-                      "try more keypoints, a looser --ratio, or images with more overlap"]
+    assert errors == [("Error: too few matches for a relative pose: 0 and 0 keypoints, 0 matches (need 15); "
+                      "try more keypoints, a looser --ratio, or images with more overlap")]
 
 
 def test_bad_inputs(tmp_path, fountain):

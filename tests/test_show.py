@@ -114,7 +114,7 @@ def test_show_keypoints(files, tmp_path):
     (["keypoints", "{f}", "y.png", "-o", "{t}/k.png", "--images", "{t}/small"], "is 10x10 px but the features"),
 ])
 def test_show_errors_are_one_line(files, tmp_path, args, message):
-    images, features, matches = files
+    _images, features, matches = files
     (tmp_path / "a").mkdir()
     (tmp_path / "a/x.jpg").write_text("not an image")
     (tmp_path / "small").mkdir()

@@ -224,7 +224,7 @@ def regenerate_plots(root: Path) -> list[Path]:
         for kind, sources in spec.items():
             if kind == "summary":
                 paths = {k: [root / p for p in sources.get(k, [])] for k in ("homography", "pose", "sfm")}
-                _check_exist(manifest, sum(paths.values(), []))
+                _check_exist(manifest, [p for group in paths.values() for p in group])
                 md = write_summary(root / folder, paths["homography"], paths["pose"], paths["sfm"],
                                    tuple(sources.get("highlight", ())))
                 written.append(md.with_suffix(".png"))

@@ -56,6 +56,7 @@ import json
 import logging
 import math
 import time
+import typing
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, field
 from itertools import pairwise
@@ -465,7 +466,7 @@ class Textures:
     recently used dropped beyond ``GENERATED_BYTES``; a walk meets its faces in order)."""
 
     GENERATED_BYTES = 256 << 20
-    MAKERS = {"pavement": lambda w, h, rng: pavement_texture(w, h, rng),
+    MAKERS: typing.ClassVar[dict] = {"pavement": lambda w, h, rng: pavement_texture(w, h, rng),
               "grain": lambda w, h, rng: grain_texture(w, h, rng)}
 
     def __init__(self, paths: list[Path]):
