@@ -213,17 +213,19 @@ def test_paper_variants_and_ablations_run(variant, images8, tmp_path):
         assert z["counts"].sum() > 0 and (f"map_{z['indices'][0]}" in z) == variant.get("save_maps", False)
 
 
-def test_fork_equals_a_run_started_with_the_changed_setting(images8, tmp_path):
+@pytest.mark.parametrize(("setting", "value", "reused"), [("spread_weight", 1.0, ["r0_c", "r0_d", "r1_a"]),
+                                                           ("perspective", 0.1, ["r0_c"])])
+def test_fork_equals_a_run_started_with_the_changed_setting(images8, tmp_path, setting, value, reused):
     from sekd_sfm.train.fork import fork_run
 
     torch.set_num_threads(1)
     cfg = quick_config(images8, rounds=2, round0_random=False, epochs_desc=1, epochs_det=1)
     evolve(tmp_path / "source", cfg)
     reference = evolve(tmp_path / "reference", quick_config(images8, rounds=2, round0_random=False, epochs_desc=1,
-                                                             epochs_det=1, spread_weight=1.0))
-    fork_run(tmp_path / "source", tmp_path / "fork", {"spread_weight": 1.0})
+                                                             epochs_det=1, **{setting: value}))
+    fork_run(tmp_path / "source", tmp_path / "fork", {setting: value})
     state = json.loads((tmp_path / "fork" / "state.json").read_text())
-    assert state["done"] == ["r0_c", "r0_d", "r1_a"] and state["forked_from"]["changed"] == ["spread_weight"]
+    assert state["done"] == reused and state["forked_from"]["changed"] == [setting]
     assert state["forked_from"]["run"] == "../source"  # relative: the record holds in another clone
     assert "forked from" in (tmp_path / "fork" / "train.log").read_text().splitlines()[-1]
     forked = evolve(tmp_path / "fork", None, resume=True)
@@ -231,7 +233,7 @@ def test_fork_equals_a_run_started_with_the_changed_setting(images8, tmp_path):
     b = torch.load(forked.last, weights_only=True)["state_dict"]
     for key in a:  # reusing round 0 and the (a) labels changes nothing
         assert torch.equal(a[key], b[key]), key
-    assert load_run_config(tmp_path / "fork" / "config.yaml").spread_weight == 1.0
+    assert getattr(load_run_config(tmp_path / "fork" / "config.yaml"), setting) == value
 
 
 def test_fork_refuses_settings_of_steps_already_run(images8, tmp_path):
@@ -257,5 +259,7 @@ def test_fork_reuses_the_finished_tasks_before_the_first_changed_step():
     done = ["start", "r0_c", "r0_d", "r1_a", "r1_b", "r1_c"]
     assert [t.id for t in reusable_tasks(tasks, done, ["spread_weight", "rounds"])] == ["r0_c", "r0_d", "r1_a"]
     assert [t.id for t in reusable_tasks(tasks, done, ["rounds", "num_threads"])] == done[1:]
+    assert [t.id for t in reusable_tasks(tasks, done, ["perspective"])] == ["r0_c"]  # (d) reads it too
+    assert [t.id for t in reusable_tasks(tasks, done, ["perspective", "spread_weight"])] == ["r0_c"]
     with pytest.raises(SekdError, match="no_affine"):
         reusable_tasks(tasks, done, ["no_affine", "alpha"])

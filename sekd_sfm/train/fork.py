@@ -1,8 +1,9 @@
-"""Fork a run: a new run that changes step (b) settings or the rounds and reuses everything before.
+"""Fork a run: a new run that changes step (b) or training-pair settings or the rounds and reuses everything before.
 
 Labelling steps (a), (c) and the detector step (d) never read the step-(b) settings, so a
 run that differs from another only in those starts identical to it up to the first (b)
-step: ``sekd evolve --fork SRC --out NEW --set spread_weight=1`` copies the finished
+step; the training pairs' settings (``perspective``) are read by (b) and (d), so such a fork
+reuses what precedes the first training step (round 0's labels (c)): ``sekd evolve --fork SRC --out NEW --set spread_weight=1`` copies the finished
 tasks before that point (labels, models, history, log), records where it came from, and
 continues from there with ``--resume``. Nothing is recomputed and nothing is guessed:
 settings that other steps read are refused.
@@ -26,20 +27,25 @@ from .report import rank_validation, write_atomic
 DESC_STEP_FIELDS = ("epochs_desc", "desc_loss", "ratio_threshold", "margin", "margin_normalise",
                     "neg_min_distance", "neg_self_penalty", "neg_min_pixels", "spread_weight",
                     "alpha", "det_preserve_on")
+#: Settings of the training pairs only (their warp): read by both training steps, (b) and (d),
+#: never by the labelling steps (a), (c).
+PAIR_FIELDS = ("perspective",)
 #: Settings that change no finished task: rounds only append or drop later tasks.
 FREE_FIELDS = ("rounds",) + RUNTIME_FIELDS
 
 
 def reusable_tasks(tasks: list[Task], done: list[str], changed: list[str]) -> list[Task]:
     """The leading finished tasks a run with ``changed`` settings would repeat exactly."""
-    others = sorted(set(changed) - set(DESC_STEP_FIELDS) - set(FREE_FIELDS))
+    others = sorted(set(changed) - set(DESC_STEP_FIELDS) - set(PAIR_FIELDS) - set(FREE_FIELDS))
     if others:
-        raise SekdError(f"--fork can change only step (b) settings ({', '.join(DESC_STEP_FIELDS)}) and rounds; "
-                        f"{', '.join(others)} change steps the source already ran: start a new run instead")
+        raise SekdError(f"--fork can change only step (b) settings ({', '.join(DESC_STEP_FIELDS)}), training-pair "
+                        f"settings ({', '.join(PAIR_FIELDS)}) and rounds; {', '.join(others)} change steps the "
+                        "source already ran: start a new run instead")
     desc_changed = bool(set(changed) & set(DESC_STEP_FIELDS))
+    pairs_changed = bool(set(changed) & set(PAIR_FIELDS))
     reused = []
     for task in tasks:
-        if task.id not in done or (desc_changed and task.kind == "b"):
+        if task.id not in done or (desc_changed and task.kind == "b") or (pairs_changed and task.training):
             break
         reused.append(task)
     return reused
