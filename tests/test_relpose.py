@@ -68,7 +68,7 @@ def test_too_few_matches(tmp_path):
     result, errors = run(tmp_path / "a.png", tmp_path / "b.png", "--feature", "sift")
     assert result.exit_code == 1
     assert errors == [("Error: too few matches for a relative pose: 0 and 0 keypoints, 0 matches (need 15); "
-                      "try more keypoints, a looser --ratio, or images with more overlap")]
+                       "try more keypoints, a looser --ratio, or images with more overlap")]
 
 
 def test_bad_inputs(tmp_path, fountain):

@@ -170,9 +170,9 @@ def _fmt(value, digits: int = 3) -> str:
 def sfm_markdown(report: dict) -> str:
     """The benchmark as a Markdown table."""
     lines = [(f"SfM on `{Path(report['scene']).name}` ({report['images']} images, long side <= "
-             f"{report['resize_max']} px); pose errors are medians over all pairs of registered images."), "",
+              f"{report['resize_max']} px); pose errors are medians over all pairs of registered images."), "",
              ("| method | registered | pose mAA@1:10 | median rot. err (deg) | median transl. dir. err (deg) "
-             "| reproj. err (px) | 3D points | track length | wall time (s) |"), "|---|---|---|---|---|---|---|---|---|"]
+              "| reproj. err (px) | 3D points | track length | wall time (s) |"), "|---|---|---|---|---|---|---|---|---|"]
     for r in report["results"]:
         lines.append(f"| {r['method']} | {r['registered_images']}/{report['images']} | {_fmt(r.get('maa'))} "
                      f"| {_fmt(r['median_rotation_deg'])} | {_fmt(r['median_translation_deg'])} "
@@ -258,11 +258,11 @@ def benchmark_ratios(scene: str | Path, output_dir: str | Path, features: list[s
 def ratios_markdown(report: dict) -> str:
     """Per feature type: matches, correct matches per pair and precision at each ratio (mutual NN + ratio)."""
     lines = [(f"Ratio sweep on `{Path(report['scene']).name}`, {report['pairs']} pairs, mutual nearest neighbours + "
-             f"ratio test; correct = symmetric epipolar distance < {report['epipolar_threshold_px']} px under the "
-             "ground truth."), ""]
+              f"ratio test; correct = symmetric epipolar distance < {report['epipolar_threshold_px']} px under the "
+              "ground truth."), ""]
     for feature, data in report["features"].items():
         lines += [(f"**{feature}** (chosen: {data['chosen_ratio']['both']}; ratio test alone: "
-                  f"{data['chosen_ratio']['ratio']})"), "", "| ratio | matches/pair | correct/pair | precision |",
+                   f"{data['chosen_ratio']['ratio']})"), "", "| ratio | matches/pair | correct/pair | precision |",
                   "|---|---|---|---|"]
         lines += [f"| {r['ratio']:.2f} | {r['matches_per_pair']:.0f} | {r['correct_per_pair']:.0f} | {r['precision']:.3f} |"
                   for r in data["curves"]["both"]]

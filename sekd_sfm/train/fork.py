@@ -1,11 +1,12 @@
-"""Fork a run: a new run that changes step (b) or training-pair settings or the rounds and reuses everything before.
+"""Fork a run: a new run that changes step (b) or training-pair settings, or the rounds, and reuses everything before.
 
 Labelling steps (a), (c) and the detector step (d) never read the step-(b) settings, so a
 run that differs from another only in those starts identical to it up to the first (b)
-step; the training pairs' settings (``perspective``) are read by (b) and (d), so such a fork
-reuses what precedes the first training step (round 0's labels (c)): ``sekd evolve --fork SRC --out NEW --set spread_weight=1`` copies the finished
+step: ``sekd evolve --fork SRC --out NEW --set spread_weight=1`` copies the finished
 tasks before that point (labels, models, history, log), records where it came from, and
-continues from there with ``--resume``. Nothing is recomputed and nothing is guessed:
+continues from there with ``--resume``. The training pairs' settings (``perspective``) are
+read by both (b) and (d), so a fork that changes them reuses what precedes the first
+training step (round 0's labels (c)). Nothing is recomputed and nothing is guessed:
 settings that other steps read are refused.
 """
 from __future__ import annotations

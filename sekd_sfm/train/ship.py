@@ -203,8 +203,8 @@ def _fork_rows(state: dict) -> list[str]:
     if not fork:
         return []
     return [(f"| forked | from `{Path(fork['run']).name}` after `{fork['after']}` (`sekd evolve --fork`; changed: "
-            f"{', '.join(fork['changed'])}): the steps up to there were computed once, for that run, with the "
-            "same settings; the command above reproduces the same model |")]
+             f"{', '.join(fork['changed'])}): the steps up to there were computed once, for that run, with the "
+             "same settings; the command above reproduces the same model |")]
 
 
 def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> str:
@@ -225,26 +225,26 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
         f"| SHA-256 | `{file_sha256(model, 64)}` |",
         f"| network | SEKD (the paper's architecture), {n_params:,} parameters |",
         (f"| chosen | `{meta['source']}` = the model after `{meta['task']}` (round {meta['round']}, step {meta['step']}); "
-        f"validation MMA@3 {meta['validation']['mma3']:.3f} |"),
+         f"validation MMA@3 {meta['validation']['mma3']:.3f} |"),
         *([(f"| regression guard | v_graffiti 1-2 mean corner error {meta['graffiti_1_2_corner_error']:.2f} px "
-           f"(must stay under {GUARD_PX:g} px) |")] if "graffiti_1_2_corner_error" in meta else []),
+            f"(must stay under {GUARD_PX:g} px) |")] if "graffiti_1_2_corner_error" in meta else []),
         f"| data | `{meta['data']}`: 256 unlabeled COCO photos, no labels of any kind |",
         (f"| schedule | `{config['schedule']}`: {config['rounds']} rounds, subset 1/{config['subset_factor']} of the images "
-        f"per round, long side {config['long_side']} px, crops {config['crop_height']}x{config['crop_width']}, "
-        f"batch {config['batch_size']}, {config['epochs_desc']} + {config['epochs_det']} epochs per step, "
-        f"lr {config['lr']} |"),
+         f"per round, long side {config['long_side']} px, crops {config['crop_height']}x{config['crop_width']}, "
+         f"batch {config['batch_size']}, {config['epochs_desc']} + {config['epochs_det']} epochs per step, "
+         f"lr {config['lr']} |"),
         f"| seed | {config['seed']} |",
         f"| progress | {_progress(state, config)} |",
         (f"| wall time | {hours:.2f} h of training on a 2-core CPU (no GPU) up to this model, summed over the "
-        "resumed runs |"),
+         "resumed runs |"),
         f"| command | `{meta['command']}` (resumed with `sekd evolve --resume --out ...`) |",
         *_fork_rows(state),
         "",
         "## Validation during training",
         "",
         (f"Homography sequences of the shared data at long side {config['val_long_side']} px, "
-        f"top {config['val_max_keypoints']} keypoints, mutual NN (`train/validate.py`), after each training step "
-        "the run validated (the rows below); the shipped checkpoint and the reference are scored the same way by `ship.py`."),
+         f"top {config['val_max_keypoints']} keypoints, mutual NN (`train/validate.py`), after each training step "
+         "the run validated (the rows below); the shipped checkpoint and the reference are scored the same way by `ship.py`."),
         "",
         *_validation_rows(run, list(extra)),
         "",
