@@ -9,7 +9,7 @@ import click
 from sekd_sfm import __version__
 from sekd_sfm.errors import SekdError
 from sekd_sfm.failures import debug_enabled, explain
-from sekd_sfm.runtime import stop_cleanly_on_sigterm
+from sekd_sfm.runtime import forget_handled_interrupt, stop_cleanly_on_sigterm
 
 
 class SekdGroup(click.Group):
@@ -87,6 +87,8 @@ def main() -> None:
         # click turns an interrupt during a command into one message and exit code 1; one that
         # arrives after that message (during exit) must not end the process by SIGINT instead.
         sys.exit(1)
+    finally:
+        forget_handled_interrupt()
 
 
 if __name__ == "__main__":

@@ -188,6 +188,23 @@ def _raise_interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+def forget_handled_interrupt() -> None:
+    """After a command has handled an interrupt, keep ``python -m`` from exiting by SIGINT anyway.
+
+    CPython (3.8-3.13) marks a KeyboardInterrupt that escapes code run through ``PyRun_String``
+    (extension modules use it to run snippets of Python) as "unhandled", even when a caller
+    catches it later; under ``python -m`` the interpreter then ends the process with SIGINT
+    (exit -2) after our one ``Error:`` line and exit code 1. Running an empty snippet through
+    the same entry point clears that mark. Only after our handler raised an interrupt.
+    """
+    if not _STATE["ignoring"]:
+        return
+    try:
+        ctypes.pythonapi.PyRun_SimpleString(b"")
+    except AttributeError:  # not CPython: no such mark
+        pass
+
+
 def keep_sigterm_handler(import_module):
     """Import through ``import_module()`` without losing our SIGTERM handler.
 

@@ -468,6 +468,31 @@ def test_signals_during_the_interrupt_cleanup_are_ignored():
     assert done.returncode == 1 and done.stderr.split() == ["saved", "0", "saved", "1"], (done.returncode, done.stderr)
 
 
+def test_interrupt_in_an_extension_snippet_still_exits_with_code_1(tmp_path):
+    """CPython marks a KeyboardInterrupt escaping ``PyRun_String`` (extensions run Python snippets
+    through it) as unhandled even when caught, and ``python -m`` then kills itself by SIGINT (-2)
+    after our Error line; the entry point clears the mark."""
+    (tmp_path / "interrupted_command.py").write_text(
+        "import ctypes, os, signal, sys\n"
+        "import sekd_sfm.cli.main as entry\n"
+        "from sekd_sfm.runtime import stop_cleanly_on_sigterm\n"
+        "def command(**kw):\n"
+        "    stop_cleanly_on_sigterm()\n"
+        "    run = ctypes.pythonapi.PyRun_String\n"
+        "    run.restype = ctypes.py_object\n"
+        "    run.argtypes = [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]\n"
+        "    try:\n"
+        "        run(b'import os, signal\\nos.kill(os.getpid(), signal.SIGTERM)\\n', 257, {}, {})\n"
+        "    except KeyboardInterrupt:\n"
+        "        print('saved', file=sys.stderr)\n"
+        "        sys.exit(1)\n"
+        "entry.sekd = command\n"
+        "entry.main()\n")
+    done = subprocess.run([sys.executable, "-m", "interrupted_command"], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=60, env={**os.environ, "OMP_NUM_THREADS": "1"}, check=False)
+    assert (done.returncode, done.stderr.split()) == (1, ["saved"]), (done.returncode, done.stderr)
+
+
 def test_concurrent_evolve_on_one_folder_is_refused(train_images, tmp_path):
     """A real `sekd evolve` runs; a second one on its folder is refused naming it; the first stops cleanly."""
     import signal
