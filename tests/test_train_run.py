@@ -214,7 +214,8 @@ def test_paper_variants_and_ablations_run(variant, images8, tmp_path):
 
 
 @pytest.mark.parametrize(("setting", "value", "reused"), [("spread_weight", 1.0, ["r0_c", "r0_d", "r1_a"]),
-                                                           ("perspective", 0.1, ["r0_c"])])
+                                                           ("perspective", 0.1, ["r0_c"]),
+                                                           ("train_precision", "bf16", ["r0_c"])])
 def test_fork_equals_a_run_started_with_the_changed_setting(images8, tmp_path, setting, value, reused):
     from sekd_sfm.train.fork import fork_run
 
@@ -233,7 +234,21 @@ def test_fork_equals_a_run_started_with_the_changed_setting(images8, tmp_path, s
     b = torch.load(forked.last, weights_only=True)["state_dict"]
     for key in a:  # reusing round 0 and the (a) labels changes nothing
         assert torch.equal(a[key], b[key]), key
+    source = torch.load(tmp_path / "source" / "last.pth", weights_only=True)["state_dict"]
+    assert any(not torch.equal(source[key], b[key]) for key in source)  # the setting did change the training
+    assert all(t.is_contiguous() for t in b.values())  # bf16 steps train channels-last, and hand back contiguous
     assert getattr(load_run_config(tmp_path / "fork" / "config.yaml"), setting) == value
+
+
+def test_training_autocast_dtype():
+    from sekd_sfm.runtime import cpu_has_fast_bf16
+    from sekd_sfm.train.steps import autocast_dtype
+
+    cpu = torch.device("cpu")
+    assert autocast_dtype("fp32", cpu) is None and autocast_dtype("bf16", cpu) is torch.bfloat16
+    assert autocast_dtype("auto", cpu) is (torch.bfloat16 if cpu_has_fast_bf16() else None)
+    with pytest.raises(SekdError, match="train_precision"):
+        resolve_config("tiny", None, {"train_precision": "fp16"})
 
 
 def test_fork_refuses_settings_of_steps_already_run(images8, tmp_path):
@@ -261,5 +276,6 @@ def test_fork_reuses_the_finished_tasks_before_the_first_changed_step():
     assert [t.id for t in reusable_tasks(tasks, done, ["rounds", "num_threads"])] == done[1:]
     assert [t.id for t in reusable_tasks(tasks, done, ["perspective"])] == ["r0_c"]  # (d) reads it too
     assert [t.id for t in reusable_tasks(tasks, done, ["perspective", "spread_weight"])] == ["r0_c"]
+    assert [t.id for t in reusable_tasks(tasks, done, ["train_precision"])] == ["r0_c"]
     with pytest.raises(SekdError, match="no_affine"):
         reusable_tasks(tasks, done, ["no_affine", "alpha"])

@@ -30,6 +30,7 @@ CHOICES = {
     "label_warp": ("forward", "inverse"),
     "best_metric": ("mma3", "ha_avg"),
     "device": ("auto", "cpu", "cuda"),
+    "train_precision": ("fp32", "bf16", "auto"),
 }
 
 
@@ -50,6 +51,8 @@ class TrainConfig:
     keep_epoch_checkpoints: bool = True
     save_maps: bool = False          # also store the float16 score maps (Pbar, R) with the labels
     fast_deconv: bool = True         # grouped transposed convs as block-diagonal dense ones (same maths, faster on CPU)
+    train_precision: str = "fp32"    # training steps (b), (d): bf16 = mixed precision (bf16 autocast, fp32 weights and
+    #                                  losses); auto = bf16 where the device computes bf16 natively; labels stay fp32
     # --- outer loop (docs/method.md "Training") -------------------------------------
     rounds: int = 5
     subset_factor: int = 2           # round k uses images i with i mod S == k mod S

@@ -4,9 +4,9 @@ Labelling steps (a), (c) and the detector step (d) never read the step-(b) setti
 run that differs from another only in those starts identical to it up to the first (b)
 step: ``sekd evolve --fork SRC --out NEW --set spread_weight=1`` copies the finished
 tasks before that point (labels, models, history, log), records where it came from, and
-continues from there with ``--resume``. The training pairs' settings (``perspective``) are
-read by both (b) and (d), so a fork that changes them reuses what precedes the first
-training step (round 0's labels (c)). Nothing is recomputed and nothing is guessed:
+continues from there with ``--resume``. The training steps' shared settings (the pairs'
+``perspective``, ``train_precision``) are read by both (b) and (d), so a fork that changes
+them reuses what precedes the first training step (round 0's labels (c)). Nothing is recomputed and nothing is guessed:
 settings that other steps read are refused.
 """
 from __future__ import annotations
@@ -28,25 +28,25 @@ from .report import rank_validation, write_atomic
 DESC_STEP_FIELDS = ("epochs_desc", "desc_loss", "ratio_threshold", "margin", "margin_normalise",
                     "neg_min_distance", "neg_self_penalty", "neg_min_pixels", "spread_weight",
                     "alpha", "det_preserve_on")
-#: Settings of the training pairs only (their warp): read by both training steps, (b) and (d),
-#: never by the labelling steps (a), (c).
-PAIR_FIELDS = ("perspective",)
+#: Settings of both training steps, (b) and (d), never read by the labelling steps (a), (c):
+#: the training pairs' warp and the precision of the training forward passes.
+TRAINING_FIELDS = ("perspective", "train_precision")
 #: Settings that change no finished task: rounds only append or drop later tasks.
 FREE_FIELDS = ("rounds",) + RUNTIME_FIELDS
 
 
 def reusable_tasks(tasks: list[Task], done: list[str], changed: list[str]) -> list[Task]:
     """The leading finished tasks a run with ``changed`` settings would repeat exactly."""
-    others = sorted(set(changed) - set(DESC_STEP_FIELDS) - set(PAIR_FIELDS) - set(FREE_FIELDS))
+    others = sorted(set(changed) - set(DESC_STEP_FIELDS) - set(TRAINING_FIELDS) - set(FREE_FIELDS))
     if others:
-        raise SekdError(f"--fork can change only step (b) settings ({', '.join(DESC_STEP_FIELDS)}), training-pair "
-                        f"settings ({', '.join(PAIR_FIELDS)}) and rounds; {', '.join(others)} change steps the "
+        raise SekdError(f"--fork can change only step (b) settings ({', '.join(DESC_STEP_FIELDS)}), training-step "
+                        f"settings ({', '.join(TRAINING_FIELDS)}) and rounds; {', '.join(others)} change steps the "
                         "source already ran: start a new run instead")
     desc_changed = bool(set(changed) & set(DESC_STEP_FIELDS))
-    pairs_changed = bool(set(changed) & set(PAIR_FIELDS))
+    training_changed = bool(set(changed) & set(TRAINING_FIELDS))
     reused = []
     for task in tasks:
-        if task.id not in done or (desc_changed and task.kind == "b") or (pairs_changed and task.training):
+        if task.id not in done or (desc_changed and task.kind == "b") or (training_changed and task.training):
             break
         reused.append(task)
     return reused

@@ -18,6 +18,7 @@ from torch import nn
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from ..runtime import cpu_has_fast_bf16
 from .config import TrainConfig
 from .data import PairDataset, TrainImages, rng_for
 from .distributed import Context, check_in_sync, shard, sum_across, sync_buffers, wrap
@@ -140,20 +141,51 @@ def epoch_batches(count: int, cfg: TrainConfig, round_index: int, kind: str, epo
     return [shard(ctx, b) for b in batches]
 
 
-def _to(batch: dict, device: torch.device) -> dict:
-    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+def _to(batch: dict, device: torch.device, memory_format: torch.memory_format) -> dict:
+    """The batch on ``device``; the network's inputs (``image0``, ``image1``) in ``memory_format``."""
+    return {k: v.to(device, non_blocking=True, memory_format=memory_format) if k.startswith("image")
+            else v.to(device, non_blocking=True) for k, v in batch.items()}
+
+
+def autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
+    """The autocast dtype of the training steps' forward passes: bf16, or None for plain fp32.
+
+    ``auto`` picks bf16 only where the device computes it natively (CPUs with AVX512-BF16 or
+    AMX, CUDA GPUs with bf16): elsewhere bf16 is emulated and slower than fp32.
+    """
+    if precision == "fp32":
+        return None
+    if precision == "auto":
+        native = torch.cuda.is_bf16_supported() if device.type == "cuda" else cpu_has_fast_bf16()
+        return torch.bfloat16 if native else None
+    return torch.bfloat16
+
+
+def _as_float(outputs):
+    """Network outputs (nested tuples of tensors) in fp32, so every loss is computed in fp32."""
+    if isinstance(outputs, torch.Tensor):
+        return outputs.float()
+    return tuple(_as_float(o) for o in outputs)
 
 
 def run_epoch(model: nn.Module, frozen: nn.Module, loader: DataLoader, loss_fn: Callable, optimizer,
-              ctx: Context, bar_label: str, progress: bool) -> dict:
-    """One pass over ``loader``: forward, loss, backward, Adam step. Returns the mean of each loss part."""
+              ctx: Context, bar_label: str, progress: bool, amp: torch.dtype | None = None) -> dict:
+    """One pass over ``loader``: forward, loss, backward, Adam step. Returns the mean of each loss part.
+
+    ``amp``: forward passes under autocast to this dtype (channels-last tensors, which oneDNN's
+    bf16 convolutions want); weights, gradients, optimiser state and losses stay fp32.
+    """
     sums: dict[str, float] = defaultdict(float)
+    memory_format = torch.channels_last if amp is not None else torch.contiguous_format
     bar = tqdm(loader, desc=bar_label, disable=not (progress and ctx.main), leave=False, dynamic_ncols=True)
     for n, batch in enumerate(bar, start=1):
-        batch = _to(batch, ctx.device)
-        outputs = model(batch["image0"], batch["image1"])
-        with torch.no_grad():
-            reference = (frozen.forward_train(batch["image0"]), frozen.forward_train(batch["image1"]))
+        batch = _to(batch, ctx.device, memory_format)
+        with torch.autocast(ctx.device.type, dtype=amp or torch.bfloat16, enabled=amp is not None):
+            outputs = model(batch["image0"], batch["image1"])
+            with torch.no_grad():
+                reference = (frozen.forward_train(batch["image0"]), frozen.forward_train(batch["image1"]))
+        if amp is not None:
+            outputs, reference = _as_float(outputs), _as_float(reference)
         loss, parts = loss_fn(outputs, reference, batch)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -199,6 +231,9 @@ def train_step(net: nn.Module, kind: str, labels: Labels, images: TrainImages, c
     ``resume_state``: the state ``checkpoint`` saved after an epoch of this step, or None.
     ``checkpoint(epoch, state)`` is called after every epoch with everything needed to resume.
     """
+    amp = autocast_dtype(cfg.train_precision, ctx.device)
+    if amp is not None:
+        net.to(memory_format=torch.channels_last)  # in place: the same Parameters, other strides
     frozen = frozen_copy(net)  # the network as this step began (before any resumed state)
     optimizer, scheduler = _optimiser(net, cfg)
     history, start = _restore(resume_state, net, optimizer, scheduler)
@@ -212,7 +247,7 @@ def train_step(net: nn.Module, kind: str, labels: Labels, images: TrainImages, c
         batches = epoch_batches(len(indices), cfg, round_index, kind, epoch, ctx)
         loader = DataLoader(dataset, batch_sampler=batches, num_workers=cfg.num_workers)
         label = f"round {round_index} ({kind}) epoch {epoch + 1}/{epochs}"
-        means = run_epoch(model, frozen, loader, loss_fn, optimizer, ctx, label, cfg.progress)
+        means = run_epoch(model, frozen, loader, loss_fn, optimizer, ctx, label, cfg.progress, amp)
         history.append({"round": round_index, "kind": kind, "epoch": epoch,
                         "lr": optimizer.param_groups[0]["lr"], **means})
         scheduler.step(means["total"])
@@ -225,5 +260,6 @@ def train_step(net: nn.Module, kind: str, labels: Labels, images: TrainImages, c
         sync_buffers(ctx, net)
         logger.info("round %d step %s: weights identical on all %d processes (checksum %.10g)",
                     round_index, kind, ctx.world, check_in_sync(ctx, net))
+    net.to(memory_format=torch.contiguous_format)  # labelling and validation run as in fp32 runs
     net.eval()
     return history

@@ -1,0 +1,74 @@
+"""Seconds per training step in fp32 and in bf16 mixed precision (``train_precision``), side by side.
+
+Runs the training steps' own loop (``sekd_sfm.train.steps.run_epoch``: both views through the
+network, the frozen reference forward, backward, Adam) on random crops with a stand-in loss
+(the mean square of every output), alternating fp32 and bf16 epochs ``--rounds`` times so both
+see the same machine load; prints the best epoch's seconds per step of each and their ratio.
+The real losses add the same work to both precisions (they run in fp32 either way).
+
+Usage: python pipelines/bench_train_precision.py [--crops 192 384] [--batch 4] [--steps 4]
+       [--rounds 2] [--num-threads N]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from sekd_sfm.network import SEKDNet, use_fast_deconv
+from sekd_sfm.runtime import cpu_description
+from sekd_sfm.train.distributed import Context
+from sekd_sfm.train.model import frozen_copy
+from sekd_sfm.train.steps import PairForward, autocast_dtype, run_epoch
+
+
+def stand_in_loss(outputs, reference, batch):
+    """Mean square of every network output: a scalar that depends on all of them."""
+    loss = sum(t.square().mean() for view in outputs for t in view)
+    return loss, {"total": loss.item()}
+
+
+def seconds_per_step(precision: str, crop: int, batch: int, steps: int, ctx: Context) -> float:
+    """One epoch of ``steps`` steps on a fresh network; seconds per step, the first step excluded (warm-up)."""
+    torch.manual_seed(0)
+    net = use_fast_deconv(SEKDNet()).train()
+    amp = autocast_dtype(precision, ctx.device)
+    if amp is not None:
+        net.to(memory_format=torch.channels_last)
+    frozen = frozen_copy(net)
+    optimizer = torch.optim.Adam(net.parameters(), lr=1e-4)
+    batches = [{"image0": torch.rand(batch, 1, crop, crop), "image1": torch.rand(batch, 1, crop, crop)}
+               for _ in range(steps + 1)]
+    run_epoch(PairForward(net), frozen, batches[:1], stand_in_loss, optimizer, ctx, "", False, amp)
+    start = time.perf_counter()
+    run_epoch(PairForward(net), frozen, batches[1:], stand_in_loss, optimizer, ctx, "", False, amp)
+    return (time.perf_counter() - start) / steps
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--crops", type=int, nargs="+", default=[192, 384])
+    parser.add_argument("--batch", type=int, default=4)
+    parser.add_argument("--steps", type=int, default=4)
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--num-threads", type=int, default=0)
+    args = parser.parse_args()
+    if args.num_threads:
+        torch.set_num_threads(args.num_threads)
+    ctx = Context(device=torch.device("cpu"))
+    cpu = cpu_description()
+    present = " ".join(name for name, has in cpu["features"].items() if has)
+    print(f"cpu: {cpu['model']} ({present}; torch kernels {cpu['torch_kernels']}); {torch.get_num_threads()} threads; "
+          f"batch {args.batch} pairs")
+    for crop in args.crops:
+        best = {"fp32": float("inf"), "bf16": float("inf")}
+        for _ in range(args.rounds):
+            for precision in ("fp32", "bf16"):
+                best[precision] = min(best[precision], seconds_per_step(precision, crop, args.batch, args.steps, ctx))
+        print(f"crop {crop}: fp32 {best['fp32']:.3f} s/step, bf16 {best['bf16']:.3f} s/step, "
+              f"bf16 {best['fp32'] / best['bf16']:.2f}x faster")
+
+
+if __name__ == "__main__":
+    main()
