@@ -191,11 +191,13 @@ def _raise_interrupt(signum, frame) -> None:
 def forget_handled_interrupt() -> None:
     """After a command has handled an interrupt, keep ``python -m`` from exiting by SIGINT anyway.
 
-    CPython (3.8-3.13) marks a KeyboardInterrupt that escapes code run through ``PyRun_String``
-    (extension modules use it to run snippets of Python) as "unhandled", even when a caller
-    catches it later; under ``python -m`` the interpreter then ends the process with SIGINT
-    (exit -2) after our one ``Error:`` line and exit code 1. Running an empty snippet through
-    the same entry point clears that mark. Only after our handler raised an interrupt.
+    CPython (3.8-3.13) marks a KeyboardInterrupt that escapes source text run by ``exec()`` or
+    ``PyRun_String`` as "unhandled", even when a caller catches it later; under ``python -m``
+    the interpreter then ends the process with SIGINT (exit -2) after our one ``Error:`` line
+    and exit code 1. ``dataclasses`` and ``namedtuple`` build their methods with ``exec()``, so
+    a Ctrl-C or SIGTERM during the import of a module defining one hits this. Running empty
+    source text through the same entry point clears that mark. Only after our handler raised
+    an interrupt.
     """
     if not _STATE["ignoring"]:
         return
