@@ -20,7 +20,12 @@ from sekd_sfm.network import SEKDNet, use_fast_deconv
 from sekd_sfm.runtime import cpu_description
 from sekd_sfm.train.distributed import Context
 from sekd_sfm.train.model import frozen_copy
-from sekd_sfm.train.steps import PairForward, autocast_dtype, run_epoch
+from sekd_sfm.train.steps import (
+    PairForward,
+    autocast_dtype,
+    run_epoch,
+    training_memory_format,
+)
 
 
 def stand_in_loss(outputs, reference, batch):
@@ -34,8 +39,7 @@ def seconds_per_step(precision: str, crop: int, batch: int, steps: int, ctx: Con
     torch.manual_seed(0)
     net = use_fast_deconv(SEKDNet()).train()
     amp = autocast_dtype(precision, ctx.device)
-    if amp is not None:
-        net.to(memory_format=torch.channels_last)
+    net.to(memory_format=training_memory_format(amp))  # as train_step prepares the network
     frozen = frozen_copy(net)
     optimizer = torch.optim.Adam(net.parameters(), lr=1e-4)
     batches = [{"image0": torch.rand(batch, 1, crop, crop), "image1": torch.rand(batch, 1, crop, crop)}

@@ -6,8 +6,8 @@ step: ``sekd evolve --fork SRC --out NEW --set spread_weight=1`` copies the fini
 tasks before that point (labels, models, history, log), records where it came from, and
 continues from there with ``--resume``. The training steps' shared settings (the pairs'
 ``perspective``, ``train_precision``) are read by both (b) and (d), so a fork that changes
-them reuses what precedes the first training step (round 0's labels (c)). Nothing is recomputed and nothing is guessed:
-settings that other steps read are refused.
+them reuses what precedes the first training step (round 0's labels (c)). Nothing is
+recomputed and nothing is guessed: settings that other steps read are refused.
 """
 from __future__ import annotations
 

@@ -151,7 +151,9 @@ def autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
     """The autocast dtype of the training steps' forward passes: bf16, or None for plain fp32.
 
     ``auto`` picks bf16 only where the device computes it natively (CPUs with AVX512-BF16 or
-    AMX, CUDA GPUs with bf16): elsewhere bf16 is emulated and slower than fp32.
+    AMX, CUDA GPUs with bf16): elsewhere bf16 is emulated and slower than fp32. Unlike
+    inference's ``runtime.resolve_precision``, which keeps CUDA at fp32 for exact keypoints,
+    training takes bf16 on CUDA too: bf16 training validates as fp32 does.
     """
     if precision == "fp32":
         return None
@@ -159,6 +161,11 @@ def autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
         native = torch.cuda.is_bf16_supported() if device.type == "cuda" else cpu_has_fast_bf16()
         return torch.bfloat16 if native else None
     return torch.bfloat16
+
+
+def training_memory_format(amp: torch.dtype | None) -> torch.memory_format:
+    """Channels-last under bf16 autocast (oneDNN's bf16 convolutions want it), else the usual layout."""
+    return torch.channels_last if amp is not None else torch.contiguous_format
 
 
 def _as_float(outputs):
@@ -172,11 +179,11 @@ def run_epoch(model: nn.Module, frozen: nn.Module, loader: DataLoader, loss_fn: 
               ctx: Context, bar_label: str, progress: bool, amp: torch.dtype | None = None) -> dict:
     """One pass over ``loader``: forward, loss, backward, Adam step. Returns the mean of each loss part.
 
-    ``amp``: forward passes under autocast to this dtype (channels-last tensors, which oneDNN's
-    bf16 convolutions want); weights, gradients, optimiser state and losses stay fp32.
+    ``amp``: forward passes under autocast to this dtype, inputs in ``training_memory_format``;
+    weights, gradients, optimiser state and losses stay fp32.
     """
     sums: dict[str, float] = defaultdict(float)
-    memory_format = torch.channels_last if amp is not None else torch.contiguous_format
+    memory_format = training_memory_format(amp)
     bar = tqdm(loader, desc=bar_label, disable=not (progress and ctx.main), leave=False, dynamic_ncols=True)
     for n, batch in enumerate(bar, start=1):
         batch = _to(batch, ctx.device, memory_format)
@@ -232,8 +239,7 @@ def train_step(net: nn.Module, kind: str, labels: Labels, images: TrainImages, c
     ``checkpoint(epoch, state)`` is called after every epoch with everything needed to resume.
     """
     amp = autocast_dtype(cfg.train_precision, ctx.device)
-    if amp is not None:
-        net.to(memory_format=torch.channels_last)  # in place: the same Parameters, other strides
+    net.to(memory_format=training_memory_format(amp))  # in place: the same Parameters, other strides
     frozen = frozen_copy(net)  # the network as this step began (before any resumed state)
     optimizer, scheduler = _optimiser(net, cfg)
     history, start = _restore(resume_state, net, optimizer, scheduler)
