@@ -6,6 +6,7 @@ import torch
 from conftest import GRAFFITI
 
 from sekd_sfm.inference import (
+    FastSEKD,
     SEKDConfig,
     SEKDExtractor,
     max_filter,
@@ -96,7 +97,24 @@ def test_bf16_fast_path_agrees_with_fp32(shared, authors_net):
     bf16 = SEKDExtractor(authors_net, SEKDConfig(precision="bf16", **config)).extract(image)
     kp = np.concatenate([fp32["keypoints"], fp32["scores"][:, None]], 1)
     same, cosine = _same_pixel_and_cosine(kp, fp32["descriptors"], bf16)
-    assert same >= 0.85 and cosine >= 0.99
+    # 0.972 measured; 0.87 when the softmax ran in bf16 (ties between neighbouring peaks)
+    assert same >= 0.95 and cosine >= 0.98
+
+
+@pytest.mark.skipif(not cpu_has_fast_bf16(), reason="no native bf16 on this CPU")
+def test_bf16_probabilities_are_an_fp32_softmax_of_the_bf16_logits(authors_net):
+    rng = np.random.default_rng(0)
+    image = torch.from_numpy(rng.random((1, 1, 64, 96), dtype=np.float32))
+    model = FastSEKD(authors_net, "cpu", "bf16")
+    prob, desc = model(image)
+    with torch.inference_mode():
+        x = image.to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
+        logits = model.fused(x)[0] if model.fused is not None else model.net.forward_train(x)[0]
+    expected = torch.softmax(logits.float(), dim=1)[:, 1]
+    assert prob.dtype == torch.float32 and desc.dtype == torch.float32
+    assert torch.equal(prob, expected)
+    # Not on bf16's grid: a bf16 softmax would leave ~0.002 steps near 0.5, i.e. ties for NMS.
+    assert not torch.equal(prob.to(torch.bfloat16).float(), prob)
 
 
 def test_multi_scale_maps_keypoints_into_the_image(authors_net):
