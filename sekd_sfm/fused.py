@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .network import ResBlock
+from .network import ResBlock, block_diagonal_weight
 
 #: Set to 0 to run the eager network instead (e.g. to rule the fused path out when debugging).
 ENV_SWITCH = "SEKD_FUSED"
@@ -110,12 +110,7 @@ class _Upsample:
         if not (isinstance(bn, nn.BatchNorm2d) and isinstance(relu, nn.ReLU) and isinstance(deconv, nn.ConvTranspose2d)):
             raise TypeError("not a decoder block")
         self.bn_relu = _BnRelu(bn, dtype)
-        weight, groups = deconv.weight.detach(), deconv.groups
-        c_in, per_group = weight.shape[:2]
-        rows = torch.arange(c_in) // (c_in // groups)
-        cols = torch.arange(per_group * groups) // per_group
-        mask = (rows[:, None] == cols[None, :]).to(weight.dtype)[:, :, None, None]
-        self.weight = _cl(weight.repeat(1, groups, 1, 1) * mask, dtype)  # exact: zeros outside each group
+        self.weight = _cl(block_diagonal_weight(deconv.weight.detach(), deconv.groups), dtype)
         self.bias = None if deconv.bias is None else _cl(deconv.bias, dtype)
         self.args = (deconv.stride, deconv.padding, deconv.output_padding, 1, deconv.dilation)
 

@@ -107,14 +107,19 @@ class BlockDiagonalConvTranspose2d(nn.ConvTranspose2d):
 
     # output_size is accepted for nn.ConvTranspose2d's signature only: the output size is fixed.
     def forward(self, x: torch.Tensor, output_size=None) -> torch.Tensor:
-        g = self.groups
-        c_in, per_group = self.weight.shape[:2]
-        # Column block j holds weight[:, j mod per_group]; the mask keeps only each row's own group.
-        rows = torch.arange(c_in, device=x.device) // (c_in // g)
-        cols = torch.arange(per_group * g, device=x.device) // per_group
-        mask = (rows[:, None] == cols[None, :]).to(self.weight.dtype)[:, :, None, None]
-        dense = self.weight.repeat(1, g, 1, 1) * mask
+        dense = block_diagonal_weight(self.weight, self.groups)
         return F.conv_transpose2d(x, dense, self.bias, self.stride, self.padding, self.output_padding, 1, self.dilation)
+
+
+def block_diagonal_weight(weight: torch.Tensor, groups: int) -> torch.Tensor:
+    """A grouped transposed convolution's weight ``C_in x C_out/groups x k x k`` as the equivalent dense
+    ``C_in x C_out x k x k`` one, zero outside each group's block (exact; differentiable)."""
+    c_in, per_group = weight.shape[:2]
+    # Column block j holds weight[:, j mod per_group]; the mask keeps only each row's own group.
+    rows = torch.arange(c_in, device=weight.device) // (c_in // groups)
+    cols = torch.arange(per_group * groups, device=weight.device) // per_group
+    mask = (rows[:, None] == cols[None, :]).to(weight.dtype)[:, :, None, None]
+    return weight.repeat(1, groups, 1, 1) * mask
 
 
 def _fast_copy_of(layer: nn.ConvTranspose2d) -> BlockDiagonalConvTranspose2d:
