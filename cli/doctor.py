@@ -7,6 +7,7 @@ import click
 import torch
 
 from sekd_sfm.failures import DEBUG_VARIABLE, debug_enabled
+from sekd_sfm.fused import ENV_SWITCH, fused_forward_available
 from sekd_sfm.images import DEFAULT_MAX_PIXELS
 from sekd_sfm.runtime import cpu_description, cpu_has_fast_bf16, package_versions
 from sekd_sfm.weights import EMBEDDED_MODEL, file_sha256
@@ -23,6 +24,9 @@ def doctor() -> None:
     click.echo(f"{'torch cpu kernels':<18}{cpu['torch_kernels']}")
     click.echo(f"{'threads':<18}{torch.get_num_threads()} intra-op (set with --num-threads)")
     click.echo(f"{'precision auto':<18}{'bf16 (native bf16 found)' if cpu_has_fast_bf16() else 'fp32'}")
+    fused = (f"on: oneDNN fused residual blocks on the CPU; {ENV_SWITCH}=0 turns them off" if fused_forward_available()
+             else "off: the eager PyTorch forward")
+    click.echo(f"{'fused forward':<18}{ENV_SWITCH}={os.environ.get(ENV_SWITCH, '')!s} ({fused})")
     model = f"{EMBEDDED_MODEL} (sha256 {file_sha256(EMBEDDED_MODEL)})" if EMBEDDED_MODEL.is_file() else "not found: pass --weights"
     click.echo(f"{'embedded model':<18}{model}")
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none (CPU only)"

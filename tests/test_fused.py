@@ -123,3 +123,12 @@ def test_every_weight_is_laid_out_channels_last_even_with_one_input_channel():
     weights = [c.weight for c in convs] + [b.bn_relu.weight for b in blocks]
     assert fused.conv0.weight.shape == (32, 1, 5, 5)
     assert all(w.stride(1) == 1 for w in weights)
+
+
+def test_doctor_says_whether_the_fused_forward_is_on():
+    from click.testing import CliRunner
+    from sekd_sfm.cli.main import sekd
+
+    assert "SEKD_FUSED= (on: oneDNN fused" in CliRunner().invoke(sekd, ["doctor"], env={"SEKD_FUSED": ""}).output
+    off = CliRunner().invoke(sekd, ["doctor"], env={"SEKD_FUSED": "0"})
+    assert off.exit_code == 0 and "SEKD_FUSED=0 (off: the eager PyTorch forward)" in off.output
