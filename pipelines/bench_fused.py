@@ -4,7 +4,8 @@ For each model (full SEKD, SEKD-Lite) and precision (fp32, and bf16 where the CP
 bf16), builds the fast extractor twice, fused and eager (``SEKD_FUSED=0``), and times
 ``extract`` on the same 480x640 images, alternating the two ROUNDS times so that machine noise
 hits both alike. Also prints how many keypoints land on the same pixel (2000 keypoints, integer
-positions) and the descriptor cosine there, fused against eager.
+positions) and the descriptor cosine there, fused against eager; then the same for one
+labelling step of ``sekd evolve`` (fp32).
 
 Usage: python pipelines/bench_fused.py [--count 8] [--rounds 3] [--num-threads N] [-o result.json]
 """
@@ -47,6 +48,31 @@ def rate(ex: SEKDExtractor, images: list[np.ndarray]) -> tuple[float, list[dict]
     return len(images) / (time.perf_counter() - start), out
 
 
+def bench_labels(rounds: int, images: list[np.ndarray]) -> dict:
+    """``sekd evolve``'s labelling step (c) (fp32; target view + 4 warps per photo) with the fused and the eager forward."""
+    import torch
+
+    from sekd_sfm.fused import fp32_eval_forward
+    from sekd_sfm.network import use_fast_deconv
+    from sekd_sfm.train.config import TrainConfig
+    from sekd_sfm.train.labels import label_one
+
+    net = use_fast_deconv(load_model(EMBEDDED_MODELS["authors"])[0]).eval()
+    forwards = {"fused": fp32_eval_forward(net, torch.device("cpu")), "eager": net.forward_train}
+    cfg, photos = TrainConfig(), [np.repeat(image[:, :, None], 3, axis=2) for image in images[:4]]
+    rates: dict[str, list[float]] = {"fused": [], "eager": []}
+    for _ in range(rounds):
+        for name, forward in forwards.items():
+            start = time.perf_counter()
+            for i, rgb in enumerate(photos):
+                label_one(forward, rgb, np.random.default_rng(i), "c", cfg, torch.device("cpu"))
+            rates[name].append(len(photos) / (time.perf_counter() - start))
+    ratio = float(np.median(rates["fused"]) / np.median(rates["eager"]))
+    print(f"labels (c), fp32, 480x640 + {cfg.num_warps} warps: eager {np.median(rates['eager']):.2f} photos/s, "
+          f"fused {np.median(rates['fused']):.2f} -> {ratio:.2f}x")
+    return {"model": "authors", "precision": "fp32", "step": "labels (c)", "photos_per_s": rates, "fused_vs_eager": ratio}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--count", type=int, default=8)
@@ -79,6 +105,7 @@ def main() -> None:
                   f"{np.median(rates['fused']):6.2f} (median of {args.rounds}) -> {row['fused_vs_eager']:.2f}x; "
                   f"fused vs eager: {100 * same['same_pixel']:.1f}% same pixel, cosine median "
                   f"{same['cosine_median']:.5f}")
+    results.append(bench_labels(args.rounds, images))
     if args.output:
         args.output.write_text(json.dumps({"threads": threads, "count": args.count, "rounds": args.rounds,
                                            "cpu": cpu_description(), "results": results}, indent=1) + "\n")

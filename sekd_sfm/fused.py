@@ -152,6 +152,11 @@ class FusedForward:
             self.descriptor = lambda x: conv(bn_relu(x))
 
     def __call__(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        logits, desc, _ = self.forward_train(image)
+        return logits, desc
+
+    def forward_train(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """As ``SEKDForward.forward_train``: ``(logits, raw descriptors, feature0 B x C0 x H x W)``, channels-last."""
         features = []
         x = self.conv0(image)
         for stage in self.stages:
@@ -161,4 +166,24 @@ class FusedForward:
         f0, f1, f2 = features
         g1 = self.deconv0(f2, f1)
         feature0 = self.deconv1(g1, f0)
-        return self.detector(feature0), self.descriptor(f2)
+        return self.detector(feature0), self.descriptor(f2), feature0
+
+
+def fp32_eval_forward(net: nn.Module, device: torch.device):
+    """``images B x 1 x H x W -> (logits, raw descriptors, feature0)`` of the eval-mode ``net`` in fp32: the
+    fused forward on the CPU where it applies (1.15x the eager one), else ``net.forward_train``.
+
+    For the fp32 forwards outside extraction (training labels, the distillation teacher). Outputs
+    are contiguous (the layout the eager network returns). Build it after the network's last change.
+    """
+    if device.type == "cpu" and not net.training and fused_forward_available():
+        try:
+            fused = FusedForward(net, torch.float32)
+        except TypeError:
+            fused = None
+        if fused is not None:
+            def forward(images: torch.Tensor):
+                x = images.float().contiguous(memory_format=torch.channels_last)
+                return tuple(out.contiguous() for out in fused.forward_train(x))
+            return forward
+    return net.forward_train

@@ -132,3 +132,34 @@ def test_doctor_says_whether_the_fused_forward_is_on():
     assert "SEKD_FUSED= (on: oneDNN fused" in CliRunner().invoke(sekd, ["doctor"], env={"SEKD_FUSED": ""}).output
     off = CliRunner().invoke(sekd, ["doctor"], env={"SEKD_FUSED": "0"})
     assert off.exit_code == 0 and "SEKD_FUSED=0 (off: the eager PyTorch forward)" in off.output
+
+
+def test_labels_from_the_fused_forward_match_the_eager_network(authors_net):
+    import copy
+    import dataclasses
+
+    from sekd_sfm.fused import fp32_eval_forward
+    from sekd_sfm.train.config import TrainConfig
+    from sekd_sfm.train.labels import label_one
+
+    net = use_fast_deconv(copy.deepcopy(authors_net)).eval()
+    forward = fp32_eval_forward(net, torch.device("cpu"))
+    assert forward != net.forward_train  # the fused one was built
+    rng = np.random.default_rng(0)
+    rgb = (np.kron(rng.random((12, 16, 3)), np.ones((8, 8, 1))) * 255).astype(np.uint8)  # 96 x 128 blocks
+    cfg = dataclasses.replace(TrainConfig(), num_warps=2, border_band=4, det_threshold=0.0, rel_threshold=0.0)
+    for kind in ("a", "c"):
+        xy_f, _, score_f = label_one(forward, rgb, np.random.default_rng(1), kind, cfg, torch.device("cpu"))
+        xy_e, _, score_e = label_one(net, rgb, np.random.default_rng(1), kind, cfg, torch.device("cpu"))
+        assert (score_f - score_e).abs().max() < 1e-4
+        same = {tuple(p) for p in xy_f} & {tuple(p) for p in xy_e}
+        assert len(xy_e) > 20 and len(same) >= 0.98 * len(xy_e)
+
+
+def test_eval_forward_keeps_the_eager_network_where_the_fused_one_does_not_apply(monkeypatch):
+    from sekd_sfm.fused import fp32_eval_forward
+
+    net = SEKDNet()
+    assert fp32_eval_forward(net.train(), torch.device("cpu")) == net.forward_train  # BatchNorm in training mode
+    monkeypatch.setenv(fused_module.ENV_SWITCH, "0")
+    assert fp32_eval_forward(net.eval(), torch.device("cpu")) == net.forward_train

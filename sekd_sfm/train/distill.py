@@ -40,6 +40,7 @@ from tqdm import tqdm
 
 from ..errors import SekdError
 from ..fsio import atomic_output, write_atomic
+from ..fused import fp32_eval_forward
 from ..inference import nms_keypoints, sample_descriptors
 from ..locking import exclusive_lock
 from ..network import SEKDNet, use_fast_deconv
@@ -214,11 +215,12 @@ class Teacher:
         self.net = use_fast_deconv(copy.deepcopy(net).eval()).to(memory_format=torch.channels_last)
         for p in self.net.parameters():
             p.requires_grad_(False)
+        self.forward = fp32_eval_forward(self.net, torch.device("cpu"))  # the fused forward where it applies
 
     @torch.no_grad()  # not inference_mode: its outputs are loss targets that autograd must save
     def __call__(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``B x 1 x H x W`` -> (keypoint logit ``logit1 - logit0`` B x 1 x H x W, raw descriptors B x 128 x H/4 x W/4)."""
-        logits, desc, _ = self.net.forward_train(images.contiguous(memory_format=torch.channels_last))
+        logits, desc, _ = self.forward(images.contiguous(memory_format=torch.channels_last))
         return (logits[:, 1:2] - logits[:, 0:1]).contiguous(), desc.contiguous()
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
+from ..fused import fp32_eval_forward
 from ..inference import nms_keypoints
 from .config import TrainConfig
 from .data import (
@@ -88,12 +90,15 @@ class Labels:
 # --- network outputs -----------------------------------------------------------------------------
 
 @torch.no_grad()
-def forward_views(net: nn.Module, views: torch.Tensor, chunk: int, device: torch.device):
+def forward_views(net: nn.Module | Callable, views: torch.Tensor, chunk: int, device: torch.device):
     """Eval-mode outputs for ``V x 1 x H x W`` views, ``chunk`` at a time, on ``device``:
-    probability ``V x H x W``, raw descriptors ``V x 128 x H/4 x W/4``, feature0 ``V x 32 x H x W``."""
+    probability ``V x H x W``, raw descriptors ``V x 128 x H/4 x W/4``, feature0 ``V x 32 x H x W``.
+
+    ``net``: the network, or its ``forward_train`` (e.g. ``fused.fp32_eval_forward``'s)."""
+    forward = net.forward_train if isinstance(net, nn.Module) else net
     outs = []
     for part in views.split(max(chunk, 1)):
-        logits, desc, feat = net.forward_train(part.to(device))
+        logits, desc, feat = forward(part.to(device))
         outs.append((F.softmax(logits, dim=1)[:, 1], desc, feat))
     return tuple(torch.cat(o) for o in zip(*outs))
 
@@ -311,9 +316,11 @@ def random_keypoints(height: int, width: int, count: int, rng: np.random.Generat
     return np.unique(xy, axis=0).astype(np.int32)
 
 
-def label_one(net: nn.Module, rgb: np.ndarray, rng: np.random.Generator, kind: str, cfg: TrainConfig,
+def label_one(net: nn.Module | Callable, rgb: np.ndarray, rng: np.random.Generator, kind: str, cfg: TrainConfig,
               device: torch.device) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
-    """Keypoints, their scores and the score map of one image for labelling step ``kind`` (a0, a or c)."""
+    """Keypoints, their scores and the score map of one image for labelling step ``kind`` (a0, a or c).
+
+    ``net``: the eval-mode network or its ``forward_train`` (``forward_views``)."""
     h, w = rgb.shape[:2]
     if kind == "a0":
         xy = random_keypoints(h, w, cfg.random_keypoints, rng)
@@ -340,13 +347,14 @@ def label_images(net: nn.Module, images: TrainImages, indices: list[int], kind: 
     """Run labelling step ``kind`` on ``indices``, split over processes; every process gets all labels."""
     was_training = net.training
     net.eval()
+    forward = fp32_eval_forward(net, ctx.device)  # built once per pass: the weights do not change while labelling
     part = Labels(kind, round_index)
     mine = shard(ctx, indices)
     bar = tqdm(mine, desc=f"round {round_index} ({kind}) labels", disable=not (progress and ctx.main),
                leave=False, dynamic_ncols=True)
     for i in bar:
         rng = rng_for(cfg.seed, round_index, kind, 0, i)
-        xy, scores, score = label_one(net, images.rgb(i), rng, kind, cfg, ctx.device)
+        xy, scores, score = label_one(forward, images.rgb(i), rng, kind, cfg, ctx.device)
         part.keypoints[i], part.scores[i], part.sizes[i] = xy, scores, tuple(score.shape)
         if cfg.save_maps:
             part.maps[i] = score.numpy().astype(np.float16)
