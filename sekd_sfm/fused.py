@@ -6,7 +6,8 @@ AMX the 3x3 convolution itself is so fast that those passes take most of the tim
 480x640 a full-resolution block of SEKDNet costs 2.3 ms of convolution and 4.1 ms of
 BatchNorm, ReLU and residual add (2 threads). This forward computes the same function with
 two oneDNN primitives per block, through the fused-convolution operators PyTorch ships for
-its own CPU compiler (``torch.ops.mkldnn._convolution_pointwise``):
+its own CPU compiler (``torch.ops.mkldnn._convolution_pointwise``, a private operator: where
+a PyTorch build lacks it or cannot run it, ``FastSEKD`` keeps the eager network):
 
 - eval-mode BatchNorm is a per-channel affine map, so ``ReLU(BN(x))`` is a depthwise 1x1
   convolution (weight = scale, bias = shift) with a ReLU post-op: one read, one write;
@@ -131,7 +132,8 @@ class FusedForward:
     ``image``: ``B x 1 x H x W`` in ``dtype``, channels-last. Built once per network and dtype from
     the network's fp32 parameters (so that each folded value is rounded to ``dtype`` once), which
     are copied: later changes to the network are not seen.
-    Raises TypeError for a network whose modules are not SEKD's pre-activation layout.
+    Raises TypeError for a network whose modules are not SEKD's pre-activation layout, and
+    RuntimeError when this PyTorch cannot run the fused operators (a 16 x 16 probe runs here).
     """
 
     def __init__(self, net: nn.Module, dtype: torch.dtype):
@@ -150,6 +152,8 @@ class FusedForward:
                 raise TypeError("unknown descriptor head")
             bn_relu, conv = _BnRelu(bn, dtype), _Conv(conv, dtype)
             self.descriptor = lambda x: conv(bn_relu(x))
+        with torch.no_grad():  # fail here, where the caller can fall back, rather than in the first real call
+            self(torch.zeros(1, 1, 16, 16, dtype=dtype).contiguous(memory_format=torch.channels_last))
 
     def __call__(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         logits, desc, _ = self.forward_train(image)
@@ -179,7 +183,7 @@ def fp32_eval_forward(net: nn.Module, device: torch.device):
     if device.type == "cpu" and not net.training and fused_forward_available():
         try:
             fused = FusedForward(net, torch.float32)
-        except TypeError:
+        except (TypeError, RuntimeError):
             fused = None
         if fused is not None:
             def forward(images: torch.Tensor):

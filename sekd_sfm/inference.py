@@ -86,7 +86,7 @@ def _fused_or_none(net: nn.Module, dtype: torch.dtype) -> FusedForward | None:
         return None
     try:
         return FusedForward(net, dtype)
-    except TypeError:  # a network of another layout: the eager forward serves it
+    except (TypeError, RuntimeError):  # another layout, or a PyTorch that cannot run the fused operators
         return None
 
 

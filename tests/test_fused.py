@@ -163,3 +163,16 @@ def test_eval_forward_keeps_the_eager_network_where_the_fused_one_does_not_apply
     assert fp32_eval_forward(net.train(), torch.device("cpu")) == net.forward_train  # BatchNorm in training mode
     monkeypatch.setenv(fused_module.ENV_SWITCH, "0")
     assert fp32_eval_forward(net.eval(), torch.device("cpu")) == net.forward_train
+
+
+def test_a_pytorch_that_cannot_run_the_fused_operators_falls_back_to_the_eager_network(monkeypatch):
+    def broken(*args, **kwargs):
+        raise RuntimeError("could not create a primitive")
+
+    monkeypatch.setattr(fused_module, "_BnRelu", lambda bn, dtype: broken)
+    with pytest.raises(RuntimeError):
+        FusedForward(SEKDNet().eval(), torch.float32)
+    model = FastSEKD(SEKDNet(), "cpu", "fp32")
+    assert model.fused is None
+    prob, desc = model(torch.rand(1, 1, 32, 32))
+    assert prob.shape == (1, 32, 32) and desc.shape == (1, 128, 8, 8)
