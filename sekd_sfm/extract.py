@@ -22,6 +22,7 @@ from .images import (
     load_scaled,
     to_original_pixels,
 )
+from .inference import FastSEKD
 from .runtime import package_versions, set_num_threads, untune_allocator
 
 logger = logging.getLogger("sekd")
@@ -55,8 +56,18 @@ def _file_attrs(config: FeatureConfig, described: dict, extractor, model_info) -
         "model_sha256": model_info.sha256 if model_info else "",
         "weights": model_info.path if model_info else "",
         "versions": ff.json_attr(package_versions()),
+        # How the network ran (sekd_sfm.fused; SEKD_FUSED=0): the numbers differ only by float round-off.
+        "network_forward": _network_forward(extractor),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
+
+
+def _network_forward(extractor) -> str:
+    """``fused`` / ``eager`` for SEKD's fast path, ``int8`` for the quantized one, ``""`` for other features."""
+    model = getattr(extractor, "model", None)
+    if isinstance(model, FastSEKD):
+        return "fused" if model.fused is not None else "eager"
+    return "int8" if getattr(model, "precision", None) == "int8" else ""
 
 
 def _load(path: Path, resize_max: int | None, color: bool, max_pixels: int | None = DEFAULT_MAX_PIXELS):

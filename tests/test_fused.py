@@ -176,3 +176,21 @@ def test_a_pytorch_that_cannot_run_the_fused_operators_falls_back_to_the_eager_n
     assert model.fused is None
     prob, desc = model(torch.rand(1, 1, 32, 32))
     assert prob.shape == (1, 32, 32) and desc.shape == (1, 128, 8, 8)
+
+
+@pytest.mark.parametrize(("switch", "expected"), [("1", "fused"), ("0", "eager")])
+def test_feature_file_records_how_the_network_ran(tmp_path, monkeypatch, switch, expected):
+    import cv2
+    import h5py
+
+    from sekd_sfm.extract import extract_features
+    from sekd_sfm.features import FeatureConfig
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(photos / "a.png"), (np.kron(rng.random((8, 10)), np.ones((8, 8))) * 255).astype(np.uint8))
+    monkeypatch.setenv(fused_module.ENV_SWITCH, switch)
+    output = extract_features(photos, tmp_path / "features.h5", FeatureConfig(), progress=False, num_threads=1)
+    with h5py.File(output, "r") as f:
+        assert f.attrs["network_forward"] == expected and "a.png" in f
