@@ -41,7 +41,8 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
     result = benchmark_speed(net, images or shared_dir() / "data/train/coco", count, height, width, repeats,
                              max_keypoints, num_threads)
     click.echo(f"{result['images']} images at {height}x{width}, {result['threads']} threads, "
-               f"{result['gflop_per_image']:.1f} GFLOP per SEKD image, auto precision = {result['precision_auto']}")
+               f"{result['gflop_per_image']:.1f} GFLOP per SEKD image, auto precision = {result['precision_auto']}, "
+               f"{result['fast_forward']} forward")
     cpu = result["cpu"]
     have = [name for name, present in cpu["features"].items() if present]
     missing = [name for name, present in cpu["features"].items() if not present]

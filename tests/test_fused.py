@@ -194,3 +194,23 @@ def test_feature_file_records_how_the_network_ran(tmp_path, monkeypatch, switch,
     output = extract_features(photos, tmp_path / "features.h5", FeatureConfig(), progress=False, num_threads=1)
     with h5py.File(output, "r") as f:
         assert f.attrs["network_forward"] == expected and "a.png" in f
+
+
+def test_bench_speed_reports_the_forward_and_the_fast_paths_agreement(shared, tmp_path, monkeypatch):
+    import json
+
+    from click.testing import CliRunner
+
+    from sekd_sfm import int8
+    from sekd_sfm.cli.main import sekd
+
+    monkeypatch.setattr(int8, "available", lambda: False)  # no calibration here: tests/test_int8.py covers int8
+    out = tmp_path / "speed.json"
+    result = CliRunner().invoke(sekd, ["bench", "speed", "--count", "2", "--repeats", "1", "--height", "96",
+                                       "--width", "128", "--num-threads", "1", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "fused forward" in result.output
+    report = json.loads(out.read_text())
+    assert report["fast_forward"] == "fused"
+    assert report["agreement_fast_fp32"]["same_pixel"] == 1.0  # the fused fp32 path keeps plain fp32's keypoints
+    assert set(report["images_per_s"]) >= {"sekd plain fp32", "sekd fast fp32", "sekd fast auto", "opencv sift"}

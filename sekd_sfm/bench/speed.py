@@ -165,6 +165,8 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
     return {
         "images": count, "size": [height, width], "threads": threads, "gflop_per_image": gflop,
         "precision_auto": methods[fast].model.precision,
+        # The fast paths' forward (sekd_sfm.fused; SEKD_FUSED=0 turns it off): it changes their rates.
+        "fast_forward": "fused" if methods[fast].model.fused is not None else "eager",
         "images_per_s": rates,
         "gflop_per_s": {k: v * gflop_of[k] for k, v in rates.items() if k.startswith("sekd")},
         "fast_vs_plain": rates[fast] / rates["sekd plain fp32"],
