@@ -200,9 +200,9 @@ def test_bench_speed_reports_the_forward_and_the_fast_paths_agreement(shared, tm
     import json
 
     from click.testing import CliRunner
+    from sekd_sfm.cli.main import sekd
 
     from sekd_sfm import int8
-    from sekd_sfm.cli.main import sekd
 
     monkeypatch.setattr(int8, "available", lambda: False)  # no calibration here: tests/test_int8.py covers int8
     out = tmp_path / "speed.json"
