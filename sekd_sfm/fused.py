@@ -139,6 +139,14 @@ class FusedForward:
     def __init__(self, net: nn.Module, dtype: torch.dtype):
         if net.training:
             raise ValueError("the fused forward folds BatchNorm's running statistics: put the network in eval mode")
+        try:
+            self._build(net, dtype)
+        except (AttributeError, ValueError) as exc:  # a wrapper module, other module names or block lengths
+            raise TypeError(f"not SEKD's layout: {exc}") from None
+        with torch.no_grad():  # fail here, where the caller can fall back, rather than in the first real call
+            self(torch.zeros(1, 1, 16, 16, dtype=dtype).contiguous(memory_format=torch.channels_last))
+
+    def _build(self, net: nn.Module, dtype: torch.dtype) -> None:
         self.conv0 = _Conv(net.conv0, dtype)
         self.stages = [_stage(net.resblock0, dtype), _stage(net.resblock1, dtype), _stage(net.resblock2, dtype)]
         self.deconv0, self.deconv1 = _Upsample(net.deconv0, dtype), _Upsample(net.deconv1, dtype)
@@ -152,8 +160,6 @@ class FusedForward:
                 raise TypeError("unknown descriptor head")
             bn_relu, conv = _BnRelu(bn, dtype), _Conv(conv, dtype)
             self.descriptor = lambda x: conv(bn_relu(x))
-        with torch.no_grad():  # fail here, where the caller can fall back, rather than in the first real call
-            self(torch.zeros(1, 1, 16, 16, dtype=dtype).contiguous(memory_format=torch.channels_last))
 
     def __call__(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         logits, desc, _ = self.forward_train(image)

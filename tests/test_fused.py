@@ -103,6 +103,8 @@ def test_other_layouts_and_training_mode_are_refused():
 
     with pytest.raises(TypeError):
         FusedForward(Other().eval(), torch.float32)
+    with pytest.raises(TypeError, match="layout"):  # no SEKD module names at all (e.g. a wrapper module)
+        FusedForward(nn.Sequential(SEKDNet()).eval(), torch.float32)
     assert FastSEKD(Other(), "cpu", "fp32").fused is None  # served by the eager forward instead
     with pytest.raises(ValueError, match="eval mode"):
         FusedForward(SEKDNet().train(), torch.float32)
