@@ -179,6 +179,17 @@ class FusedForward:
         return self.detector(feature0), self.descriptor(f2), feature0
 
 
+def fused_or_none(net: nn.Module, dtype: torch.dtype) -> FusedForward | None:
+    """The fused forward of the eval-mode ``net`` at ``dtype``, or None where it does not apply (switched
+    off, a PyTorch without or unable to run the fused operators, another layout): use the eager network."""
+    if not fused_forward_available():
+        return None
+    try:
+        return FusedForward(net, dtype)
+    except (TypeError, RuntimeError):
+        return None
+
+
 def fp32_eval_forward(net: nn.Module, device: torch.device):
     """``images B x 1 x H x W -> (logits, raw descriptors, feature0)`` of the eval-mode ``net`` in fp32: the
     fused forward on the CPU where it applies (1.15x the eager one), else ``net.forward_train``.
@@ -186,14 +197,11 @@ def fp32_eval_forward(net: nn.Module, device: torch.device):
     For the fp32 forwards outside extraction (training labels, the distillation teacher). Outputs
     are contiguous (the layout the eager network returns). Build it after the network's last change.
     """
-    if device.type == "cpu" and not net.training and fused_forward_available():
-        try:
-            fused = FusedForward(net, torch.float32)
-        except (TypeError, RuntimeError):
-            fused = None
-        if fused is not None:
-            def forward(images: torch.Tensor):
-                x = images.float().contiguous(memory_format=torch.channels_last)
-                return tuple(out.contiguous() for out in fused.forward_train(x))
-            return forward
-    return net.forward_train
+    fused = fused_or_none(net, torch.float32) if device.type == "cpu" and not net.training else None
+    if fused is None:
+        return net.forward_train
+
+    def forward(images: torch.Tensor):
+        x = images.float().contiguous(memory_format=torch.channels_last)
+        return tuple(out.contiguous() for out in fused.forward_train(x))
+    return forward

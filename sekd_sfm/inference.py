@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .fused import FusedForward, fused_forward_available
+from .fused import fused_or_none
 from .network import STRIDE, SEKDNet, use_fast_deconv
 from .runtime import resolve_device, resolve_precision, tune_allocator
 
@@ -62,7 +62,7 @@ class FastSEKD(nn.Module):
         net = use_fast_deconv(copy.deepcopy(net).eval())
         self.dtype = _DTYPES[self.precision]
         # Folded from the fp32 parameters, before they are rounded to the network's dtype.
-        self.fused = _fused_or_none(net.float(), self.dtype) if self.device.type == "cpu" else None
+        self.fused = fused_or_none(net.float(), self.dtype) if self.device.type == "cpu" else None
         self.net = net.to(self.device, self.dtype).to(memory_format=torch.channels_last)
         if self.device.type == "cpu":
             tune_allocator()
@@ -78,16 +78,6 @@ class FastSEKD(nn.Module):
         # fp32 pixel at 2000 keypoints, against 95.5 % with this fp32 softmax, at no measurable cost).
         prob = F.softmax(logits.float(), dim=1)[:, 1]
         return prob.contiguous(), desc.float().contiguous()
-
-
-def _fused_or_none(net: nn.Module, dtype: torch.dtype) -> FusedForward | None:
-    """The oneDNN-fused forward of ``net`` (``sekd_sfm.fused``), or None where it does not apply."""
-    if not fused_forward_available():
-        return None
-    try:
-        return FusedForward(net, dtype)
-    except (TypeError, RuntimeError):  # another layout, or a PyTorch that cannot run the fused operators
-        return None
 
 
 def max_filter(image: torch.Tensor, radius: int) -> torch.Tensor:
