@@ -82,8 +82,11 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
 @click.option("--precision", type=click.Choice(PRECISIONS), default="fp32", show_default=True,
               help="SEKD network precision (fp32: the model's own numbers; auto: the fast path of `extract`; "
                    "int8: quantized, needs the int8 extra).")
+@click.option("--ransac-runs", type=click.IntRange(min=1), default=50, show_default=True,
+              help="RANSAC runs per pair: the first on the matches in order (the paper's Avg.HA), the others on "
+                   "shuffled orders; the table adds their mean ± sd, which ranks methods closer than one run can.")
 @weights_option
-def homography(roots, methods, output, resize_max, max_keypoints, precision, weights) -> None:
+def homography(roots, methods, output, resize_max, max_keypoints, precision, ransac_runs, weights) -> None:
     """Homography estimation (the paper's Table 2 / Fig. 4) on HPatches-layout sequences.
 
     \b
@@ -97,7 +100,8 @@ def homography(roots, methods, output, resize_max, max_keypoints, precision, wei
 
     roots = list(roots) or [shared_dir() / "data/homography/hpatches", shared_dir() / "data/homography/oxford"]
     specs = method_specs(methods, weights)
-    config = HomographyConfig(resize_max=resize_max or None, max_keypoints=max_keypoints, precision=precision)
+    config = HomographyConfig(resize_max=resize_max or None, max_keypoints=max_keypoints, precision=precision,
+                              ransac_runs=ransac_runs)
     path = run_homography_benchmark(roots, [parse_method(m) for m in specs], output, config)
     click.echo((path.parent / "results.md").read_text())
     click.echo(f"results: {path}")
@@ -122,8 +126,11 @@ def method_specs(methods: tuple[str, ...], weights: str | None) -> list[str]:
 @click.option("--resize-max", type=click.IntRange(min=0), default=1600, show_default=True, help="Extraction size limit; 0 = full.")
 @click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]), default="fp32", show_default=True,
               help="SEKD network precision (fp32: the model's own numbers; auto: the fast path of `extract`).")
+@click.option("--ransac-runs", type=click.IntRange(min=1), default=10, show_default=True,
+              help="RANSAC runs per pair: the first on the matches in order (the mAA / AUC columns), the others on "
+                   "shuffled orders; the table adds their mean ± sd.")
 @weights_option
-def pose(scenes, methods, output, max_keypoints, resize_max, precision, weights) -> None:
+def pose(scenes, methods, output, max_keypoints, resize_max, precision, ransac_runs, weights) -> None:
     """Relative pose on every image pair of scenes with ground-truth cameras (mAA, AUC).
 
     \b
@@ -137,7 +144,8 @@ def pose(scenes, methods, output, max_keypoints, resize_max, precision, weights)
 
     scenes = list(scenes) or [shared_dir() / "data/sfm/fountain-P11"]
     specs = method_specs(methods, weights)
-    config = PoseConfig(max_keypoints=max_keypoints, resize_max=resize_max or None, precision=precision)
+    config = PoseConfig(max_keypoints=max_keypoints, resize_max=resize_max or None, precision=precision,
+                        ransac_runs=ransac_runs)
     path = run_pose_benchmark(scenes, [parse_method(m) for m in specs], output, config)
     click.echo((path.parent / "results.md").read_text())
     click.echo(f"results: {path}")

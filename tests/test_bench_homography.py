@@ -10,7 +10,12 @@ from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.bench import metrics
 from sekd_sfm.bench.datasets import find_sequences
-from sekd_sfm.bench.homography import HomographyConfig, run_homography_benchmark
+from sekd_sfm.bench.homography import (
+    HomographyConfig,
+    evaluate_pair,
+    run_homography_benchmark,
+    summarise,
+)
 from sekd_sfm.bench.methods import Method, parse_method
 from sekd_sfm.errors import SekdError
 
@@ -48,6 +53,43 @@ def test_pose_metrics_by_hand():
     # Errors 0 and 10 deg: recall 0.5 from 0 to 10 deg, so AUC@10 = 0.5 (area of the step) ... up to the jump.
     assert metrics.pose_auc([0.0, 10.0], 10) == pytest.approx(0.5)
     assert metrics.pose_auc([0.0, 0.0], 5) == pytest.approx(1.0)
+
+
+def test_ransac_orders_are_the_matcher_order_then_seeded_permutations():
+    assert metrics.ransac_order(5, 0).tolist() == [0, 1, 2, 3, 4]
+    first, again, other = (metrics.ransac_order(50, run) for run in (1, 1, 2))
+    assert sorted(first.tolist()) == list(range(50)) and first.tolist() == again.tolist()
+    assert first.tolist() != other.tolist() and first.tolist() != list(range(50))
+    assert metrics.ransac_order(0, 3).size == 0
+    assert metrics.mean_and_sd([0.5, 0.7]) == pytest.approx((0.6, 0.1))
+    assert metrics.mean_and_sd([0.4]) == (0.4, 0.0)
+
+
+def test_summary_of_ransac_runs_by_hand():
+    # Two pairs, two runs: run 0 solves both within 1 px; run 1 solves pair 1 at 4 px and fails pair 2.
+    pairs = [{"subset": "i", "corner_error": 0.5, "corner_error_runs": [0.5, 4.0], "mma": [0] * 10,
+              "repeatability": 0.5, "matches": 10},
+             {"subset": "v", "corner_error": 0.5, "corner_error_runs": [0.5, float("inf")], "mma": [0] * 10,
+              "repeatability": 0.5, "matches": 10}]
+    s = summarise(pairs)
+    # Avg.HA@1:10 per run: run 0 = 1.0; run 1 = (7/10 for pair 1 + 0 for pair 2) / 2 = 0.35.
+    assert s["ransac_runs"] == 2 and s["avg_ha_all"] == 1.0
+    assert (s["avg_ha_all_mean"], s["avg_ha_all_sd"]) == pytest.approx((0.675, 0.325))
+    assert (s["avg_ha_i_mean"], s["avg_ha_v_mean"]) == pytest.approx((0.85, 0.5))
+
+
+def test_first_ransac_run_is_the_papers_single_run():
+    rng = np.random.default_rng(0)
+    kp0 = rng.uniform(0, 300, (60, 2))
+    kp1 = kp0 + [3.0, -2.0]
+    kp1[:20] = rng.uniform(0, 300, (20, 2))   # a third of the matches are wrong
+    f0 = {"keypoints": kp0.astype(np.float32), "descriptors": np.eye(60, 64, dtype=np.float32), "image_size": [300, 300]}
+    f1 = {"keypoints": kp1.astype(np.float32), "descriptors": np.eye(60, 64, dtype=np.float32), "image_size": [300, 300]}
+    truth = np.array([[1, 0, 3.0], [0, 1, -2.0], [0, 0, 1]])
+    single, runs = evaluate_pair(f0, f1, truth, False), evaluate_pair(f0, f1, truth, False, ransac_runs=5)
+    assert single["corner_error_runs"] == [single["corner_error"]]
+    assert runs["corner_error"] == single["corner_error"] and len(runs["corner_error_runs"]) == 5
+    assert max(runs["corner_error_runs"]) < 0.1    # every order finds the shift from the 40 right matches
 
 
 def make_sequence(folder, name, shift=(7.0, 3.0), sizes=((120, 160), (100, 150))):
@@ -104,6 +146,8 @@ def test_tiny_end_to_end_with_a_pure_translation(tmp_path):
     results = json.loads(out.read_text())
     sift = results["methods"]["sift"]["summary"]
     assert sift["ha_all"][2] == 1.0  # a 2-image sequence with a known shift is solved within 3 px
+    assert sift["ransac_runs"] == 50 and sift["avg_ha_all_sd"] >= 0
+    assert "mean ± sd (50 runs)" in (tmp_path / "out/results.md").read_text()
     assert (tmp_path / "out/homography_accuracy.png").is_file() and "| orb |" in (tmp_path / "out/results.md").read_text()
 
 

@@ -53,9 +53,12 @@ def test_strecha_scene_reader(tmp_path):
 
 def test_tiny_run_on_fountain(tmp_path, shared):
     out = run_pose_benchmark([shared / "data/sfm/fountain-P11"], [parse_method("sift")], tmp_path,
-                             PoseConfig(max_keypoints=1000, resize_max=640))
-    summary = json.loads(out.read_text())["methods"]["sift"]["summary"]
-    assert summary["pairs"] == 55
+                             PoseConfig(max_keypoints=1000, resize_max=640, ransac_runs=3))
+    entry = json.loads(out.read_text())["methods"]["sift"]
+    summary = entry["summary"]
+    assert summary["pairs"] == 55 and summary["ransac_runs"] == 3
+    assert all(len(p["pose_deg_runs"]) == 3 and p["pose_deg_runs"][0] == p["pose_deg"] for p in entry["pairs"])
+    assert summary["maa_sd"] >= 0 and abs(summary["maa_mean"] - summary["maa"]) < 0.1
     assert summary["median_rotation_deg"] < 1.0 and summary["maa"] > 0.3
     assert (tmp_path / "pose_accuracy.png").is_file()
 

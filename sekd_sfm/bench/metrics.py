@@ -93,3 +93,22 @@ def pose_auc(errors: list[float], limit: float) -> float:
     e = np.r_[errors[:last], limit]
     r = np.r_[recall[:last], recall[last - 1]]
     return float(np.trapezoid(r, x=e) / limit)
+
+
+def ransac_order(count: int, run: int) -> np.ndarray:
+    """Order in which ``count`` matches are given to RANSAC on run ``run`` (0 = as matched).
+
+    OpenCV's RANSAC (``findHomography``, ``findEssentialMat``) seeds its sampler with a fixed
+    constant, so the only thing that changes its draws is the order of the input: run 0 keeps
+    the matcher's order (the paper's protocol), run ``k > 0`` a permutation seeded by ``k``. The
+    spread of a metric over runs is what RANSAC's luck alone does to it.
+    """
+    if run == 0:
+        return np.arange(count)
+    return np.random.default_rng(run).permutation(count)
+
+
+def mean_and_sd(values: list[float]) -> tuple[float, float]:
+    """Mean and (population) standard deviation of a metric over RANSAC runs; sd 0 for one run."""
+    values = np.asarray(values, np.float64)
+    return float(values.mean()), float(values.std())

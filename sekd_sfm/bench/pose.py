@@ -36,6 +36,10 @@ class PoseConfig:
     precision: str = "fp32"
     ransac_px: float = 1.0          # RANSAC threshold in pixels (of the mean focal length)
     confidence: float = 0.99999
+    #: RANSAC runs per pair: run 0 on the matches in the matcher's order (the mAA / AUC columns),
+    #: the others on seeded shuffles of the same matches (``metrics.ransac_order``); their mean
+    #: and sd show how much of a difference between methods is RANSAC's luck.
+    ransac_runs: int = 10
 
 
 def match_pair(f0: dict, f1: dict, feature: str, binary: bool) -> np.ndarray:
@@ -84,19 +88,29 @@ def evaluate_scene(features: Path, scene: PoseScene, feature: str, binary: bool,
     results = []
     for a, b in tqdm(list(combinations(names, 2)), desc=f"pose {scene.name}", unit="pair", leave=False):
         matches = match_pair(loaded[a], loaded[b], feature, binary)
-        kp0, kp1 = loaded[a]["keypoints"][matches[:, 0]], loaded[b]["keypoints"][matches[:, 1]]
-        estimate = estimate_relative_pose(kp0.astype(np.float64), kp1.astype(np.float64),
-                                          scene.cameras[a][0], scene.cameras[b][0], config)
-        rot, trans = pose_errors(estimate, scene.cameras[a], scene.cameras[b])
+        runs = []
+        for run in range(max(1, config.ransac_runs)):
+            ordered = matches[metrics.ransac_order(len(matches), run)]
+            kp0, kp1 = loaded[a]["keypoints"][ordered[:, 0]], loaded[b]["keypoints"][ordered[:, 1]]
+            estimate = estimate_relative_pose(kp0.astype(np.float64), kp1.astype(np.float64),
+                                              scene.cameras[a][0], scene.cameras[b][0], config)
+            runs.append((estimate, pose_errors(estimate, scene.cameras[a], scene.cameras[b])))
+        estimate, (rot, trans) = runs[0]
         results.append({"scene": scene.name, "pair": [a, b], "matches": len(matches),
                         "inliers": estimate[2] if estimate else 0, "rotation_deg": rot, "translation_deg": trans,
-                        "pose_deg": max(rot, trans)})
+                        "pose_deg": max(rot, trans), "pose_deg_runs": [max(errors) for _, errors in runs]})
     return results
 
 
 def summarise(pairs: list[dict]) -> dict:
+    """mAA@1:10 and AUC@5/10/20 of run 0, their mean and sd over the RANSAC runs, median errors, matches."""
     errors = [p["pose_deg"] for p in pairs]
-    return {"pairs": len(pairs), "maa": metrics.mean_average_accuracy(errors),
+    runs = min((len(p["pose_deg_runs"]) for p in pairs), default=1)
+    per_run = [[p["pose_deg_runs"][r] for p in pairs] for r in range(runs)]
+    maa_mean, maa_sd = metrics.mean_and_sd([metrics.mean_average_accuracy(e) for e in per_run])
+    auc5_mean, auc5_sd = metrics.mean_and_sd([metrics.pose_auc(e, 5) for e in per_run])
+    return {"pairs": len(pairs), "maa": metrics.mean_average_accuracy(errors), "ransac_runs": runs,
+            "maa_mean": maa_mean, "maa_sd": maa_sd, "auc5_mean": auc5_mean, "auc5_sd": auc5_sd,
             "accuracy": metrics.accuracy_curve(errors).tolist(),
             **{f"auc{t}": metrics.pose_auc(errors, t) for t in (5, 10, 20)},
             "median_rotation_deg": float(np.median([p["rotation_deg"] for p in pairs])),
