@@ -1,6 +1,7 @@
 """SEKD-Lite (sekd_sfm/network_lite.py): architecture, checkpoints, the embedded model, `sekd distill`."""
 import json
 import re
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -215,8 +216,34 @@ def test_distill_resume_continues_exactly_where_it_stopped(tmp_path, tiny_photos
     assert [r["step"] for r in records if "loss" in r] == [1, 2, 3, 4]
 
 
+def test_distill_init_starts_from_the_given_lite_and_keeps_its_channels(tmp_path, tiny_photos):
+    source = distill(tmp_path / "a", DistillConfig(**{**asdict(_tiny_config(tiny_photos, 1)),
+                                                      "student": {"channels": [8, 16, 32]}}), progress=False)
+    config = DistillConfig(**{**asdict(_tiny_config(tiny_photos, 1)), "init": str(source), "lr": 1e-12,
+                              "warmup_steps": 1, "lr_min": 1e-12})
+    student = distill(tmp_path / "b", config, progress=False)
+    start, after = (torch.load(p, weights_only=True)["state_dict"] for p in (source, student))
+    assert start["conv0.weight"].shape[0] == 8   # the checkpoint's channels, not the default 16
+    # One step at a learning rate of 1e-12 leaves the weights where --init put them.
+    assert all(torch.allclose(start[k].float(), after[k].float(), atol=1e-6) for k in start if "weight" in k)
+    recorded = json.loads((tmp_path / "b" / "config.json").read_text())
+    assert recorded["init_sha256"] == file_sha256(source) and recorded["config"]["student"]["channels"] == [8, 16, 32]
+
+
+def test_distill_in_bf16_trains_an_fp32_student(tmp_path, tiny_photos):
+    config = DistillConfig(**{**asdict(_tiny_config(tiny_photos, 2)), "train_precision": "bf16"})
+    student = distill(tmp_path / "run", config, progress=False)
+    state = torch.load(student, weights_only=True)["state_dict"]
+    assert all(v.dtype == torch.float32 for k, v in state.items() if v.is_floating_point())
+    records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(r["loss"]) for r in records if "loss" in r)
+    assert load_model(student)[0](torch.rand(1, 1, 32, 48))[0].dtype == torch.float32
+
+
 @pytest.mark.parametrize("args, message", [
     (["--resume"], "no distillation to resume"),
+    (["--init", "authors"], "is a full SEKD network .* checkpoint, but a SEKD-Lite"),
+    (["--init", "lite", "--channels", "8", "16", "32"], "--init keeps the checkpoint's channels; drop --channels"),
     (["--resume", "--steps", "5"], "--resume continues .* with its recorded settings; drop --steps"),
     (["--photos", "{tmp}/nowhere"], "nowhere: photo folder not found"),
     (["--crop", "30", "48"], "--crop must be HEIGHT WIDTH, multiples of 4"),

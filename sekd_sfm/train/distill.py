@@ -49,12 +49,14 @@ from ..runtime import set_num_threads, shared_dir
 from ..weights import (
     DEFAULT_MODEL,
     FULL_ARCHITECTURE,
+    LITE_ARCHITECTURE,
     embedded_model_path,
     file_sha256,
     load_model,
     save_checkpoint,
 )
 from .data import TrainImages
+from .steps import autocast_dtype
 
 CONFIG_NAME, STATE_NAME, LAST_NAME, FINAL_NAME, METRICS_NAME = (
     "config.json", "state.pt", "last.pth", "student.pth", "metrics.jsonl")
@@ -67,6 +69,13 @@ class DistillConfig:
     teacher: str = DEFAULT_MODEL          # embedded model name or checkpoint path (full SEKD network)
     photos: str = ""                      # folder of training photos ("" = shared COCO photos)
     student: dict = field(default_factory=lambda: copy.deepcopy(DEFAULT_CONFIG))  # SEKDLiteNet config
+    #: Student to start from: ``lite`` (the embedded SEKD-Lite) or a SEKD-Lite checkpoint; "" = random
+    #: initialisation. Continuing a distillation with a new schedule (more steps, another teacher or
+    #: augmentation) costs a fraction of a run from scratch; the student's channels are the checkpoint's.
+    init: str = ""
+    #: Student training: fp32, or bf16 mixed precision (autocast; fp32 weights, optimiser and losses;
+    #: the teacher stays fp32), or auto = bf16 where the CPU computes it natively (as `evolve`).
+    train_precision: str = "fp32"
     steps: int = 3000
     batch_size: int = 8
     crop: list = field(default_factory=lambda: [192, 256])  # height, width (multiples of 4)
@@ -92,6 +101,8 @@ class DistillConfig:
             raise SekdError(f"--steps and --batch-size must be >= 1 (got {self.steps}, {self.batch_size})")
         if len(self.crop) != 2 or any(c < 16 or c % 4 for c in self.crop):
             raise SekdError(f"--crop must be HEIGHT WIDTH, multiples of 4 and >= 16 (got {self.crop})")
+        if self.train_precision not in ("fp32", "bf16", "auto"):
+            raise SekdError(f"train_precision must be fp32, bf16 or auto (got {self.train_precision!r})")
         if not 0 < self.scale_range[0] <= self.scale_range[1]:
             raise SekdError(f"scale_range must satisfy 0 < low <= high (got {self.scale_range})")
         try:
@@ -276,6 +287,22 @@ def _teacher_path(config: DistillConfig) -> Path:
         raise SekdError(f"--teacher {config.teacher}: neither an embedded model nor an existing checkpoint file") from None
 
 
+def init_student(config: DistillConfig) -> tuple[Path, dict] | None:
+    """``(path, state dict)`` of the checkpoint ``config.init`` names (None without one), with
+    ``config.student`` set to its architecture; SekdError for a file that is not SEKD-Lite."""
+    if not config.init:
+        return None
+    try:
+        path = embedded_model_path(config.init)
+    except SekdError:
+        path = Path(config.init).expanduser()
+        if not path.is_file():
+            raise SekdError(f"--init {config.init}: neither an embedded model nor an existing checkpoint file") from None
+    net, info = load_model(path, architecture=LITE_ARCHITECTURE)
+    config.student = dict(info.meta.get("config", config.student))
+    return path, net.state_dict()
+
+
 def _write_json(path: Path, data: dict) -> None:
     write_atomic(path, json.dumps(data, indent=2) + "\n")
 
@@ -356,18 +383,24 @@ def _run(folder: Path, config: DistillConfig, resume: bool, progress: bool) -> P
     with exclusive_lock(folder, "run folder"):
         teacher_path = _teacher_path(config)
         teacher_net, _ = load_model(teacher_path, architecture=FULL_ARCHITECTURE)
+        start = init_student(config)
         photos = GrayPhotos(photo_folder(config), config.long_side)
         if not resume:
             _write_json(folder / CONFIG_NAME, {"config": asdict(config), "teacher_file": str(teacher_path),
                                                "teacher_sha256": file_sha256(teacher_path),
+                                               "init_sha256": file_sha256(start[0]) if start else None,
                                                "photo_count": len(photos)})
-        return _train(folder, config, Teacher(teacher_net), photos, teacher_path, progress)
+        return _train(folder, config, Teacher(teacher_net), photos, teacher_path, progress,
+                      start[1] if start else None)
 
 
 def _train(folder: Path, config: DistillConfig, teacher: Teacher, photos: GrayPhotos, teacher_path: Path,
-           progress: bool) -> Path:
+           progress: bool, initial: dict | None = None) -> Path:
     torch.manual_seed(config.seed)
     student = build_lite(config.student).train()
+    if initial is not None:  # a resumed run's state, loaded below, replaces it
+        student.load_state_dict(initial)
+    amp = autocast_dtype(config.train_precision, torch.device("cpu"))
     optimizer = torch.optim.AdamW(student.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     step = 0
     if (folder / STATE_NAME).is_file():
@@ -393,8 +426,9 @@ def _train(folder: Path, config: DistillConfig, teacher: Teacher, photos: GrayPh
             t_logit, t_desc = teacher(images)
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate(step, config)
-            logits, desc, _ = student.forward_train(images)
-            losses = distill_losses(logits, desc, t_logit, t_desc, config.peak_weight)
+            with torch.autocast("cpu", dtype=amp or torch.bfloat16, enabled=amp is not None):
+                logits, desc, _ = student.forward_train(images)
+            losses = distill_losses(logits.float(), desc.float(), t_logit, t_desc, config.peak_weight)
             loss = config.detector_weight * losses["detector"] + config.descriptor_weight * losses["descriptor"]
             losses = {k: v.detach() for k, v in losses.items()}  # scalars for the log, outside the graph
             optimizer.zero_grad(set_to_none=True)
