@@ -208,3 +208,16 @@ def test_feature_cache_follows_the_model_file_content(tmp_path, shared):
     assert cache_file(method, config, tmp_path, tmp_path) != before
     sift = parse_method("sift")
     assert cache_file(sift, sift.feature_config(500), tmp_path, tmp_path).name.startswith("sift-")
+
+
+def test_results_json_keeps_number_lists_on_one_line_and_rounds_only_the_runs():
+    from sekd_sfm.bench.report import results_json
+
+    results = {"config": {"ransac_runs": 3}, "methods": {
+        "a": {"summary": {"mma": [0.25, 0.5]}, "pairs": [{"corner_error": 1.23456, "corner_error_runs": [1.23456, float("inf"), 7.0]}]},
+        "b": {"error": "weights not found"}}}
+    text = results_json(results)
+    assert '"corner_error_runs": [1.23, Infinity, 7.0]' in text and '"mma": [0.25, 0.5]' in text
+    back = json.loads(text)
+    assert back["methods"]["a"]["pairs"][0]["corner_error"] == 1.23456 and back["methods"]["b"] == {"error": "weights not found"}
+    assert results["methods"]["a"]["pairs"][0]["corner_error_runs"][0] == 1.23456   # the caller's dict is untouched

@@ -57,7 +57,8 @@ def test_tiny_run_on_fountain(tmp_path, shared):
     entry = json.loads(out.read_text())["methods"]["sift"]
     summary = entry["summary"]
     assert summary["pairs"] == 55 and summary["ransac_runs"] == 3
-    assert all(len(p["pose_deg_runs"]) == 3 and p["pose_deg_runs"][0] == p["pose_deg"] for p in entry["pairs"])
+    # Run 0 is the single run of the mAA column (the file keeps the runs to 0.01 deg).
+    assert all(len(p["pose_deg_runs"]) == 3 and p["pose_deg_runs"][0] == round(p["pose_deg"], 2) for p in entry["pairs"])
     assert summary["maa_sd"] >= 0 and abs(summary["maa_mean"] - summary["maa"]) < 0.1
     assert summary["median_rotation_deg"] < 1.0 and summary["maa"] > 0.3
     assert (tmp_path / "pose_accuracy.png").is_file()
