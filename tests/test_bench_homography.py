@@ -148,6 +148,11 @@ def test_tiny_end_to_end_with_a_pure_translation(tmp_path):
     assert sift["ha_all"][2] == 1.0  # a 2-image sequence with a known shift is solved within 3 px
     assert sift["ransac_runs"] == 50 and sift["avg_ha_all_sd"] >= 0
     assert "mean ± sd (50 runs)" in (tmp_path / "out/results.md").read_text()
+    single = run_homography_benchmark([tmp_path / "data"], [parse_method("sift")], tmp_path / "one",
+                                      HomographyConfig(resize_max=None, crop_multiple=4, ransac_runs=1))
+    table = (single.parent / "results.md").read_text()
+    assert "mean ± sd" not in table and table.count("| sift |") == 1
+    assert len(table.splitlines()[2].split("|")) == len(table.splitlines()[4].split("|"))  # header and row agree
     assert (tmp_path / "out/homography_accuracy.png").is_file() and "| orb |" in (tmp_path / "out/results.md").read_text()
 
 

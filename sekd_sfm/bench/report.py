@@ -47,7 +47,7 @@ def homography_markdown(results: dict) -> str:
                 _pct(ha[4]), _pct(s["mma"][2]), _pct(s["repeatability"]), f"{s['matches']:.0f}",
                 f"{1000 * entry['seconds_per_image']:.0f}"]
 
-    return _method_table(results, title, columns, cells)
+    return _method_table(results, title, *_spread_columns_if_runs(columns, cells, (3,), runs))
 
 
 # Okabe & Ito's colour-blind-safe palette (black first for contrast). Combined with line
@@ -140,7 +140,16 @@ def pose_markdown(results: dict) -> str:
                 f"{s['median_rotation_deg']:.2f}", f"{s['median_translation_deg']:.2f}", f"{s['matches']:.0f}",
                 f"{s['inliers']:.0f}"]
 
-    return _method_table(results, title, columns, cells)
+    return _method_table(results, title, *_spread_columns_if_runs(columns, cells, (2, 4), runs))
+
+
+def _spread_columns_if_runs(columns: list[str], cells, spread: tuple[int, ...], runs: int):
+    """``(columns, cells)`` without the mean ± sd columns (indices ``spread``) for a single RANSAC run
+    (``--ransac-runs 1``, or results written before there were runs): they would repeat the single run."""
+    if runs > 1:
+        return columns, cells
+    keep = [i for i in range(len(columns)) if i not in spread]
+    return [columns[i] for i in keep], lambda entry: [cells(entry)[i] for i in keep]
 
 
 def plot_pose(results: dict, output: Path) -> Path:
