@@ -6,7 +6,7 @@ from pathlib import Path
 import click
 
 from sekd_sfm.errors import SekdError
-from sekd_sfm.train.distill import DistillConfig
+from sekd_sfm.train.distill import TRAIN_PRECISIONS, DistillConfig
 from sekd_sfm.train.distill import distill as run_distill
 from sekd_sfm.weights import DEFAULT_MODEL
 
@@ -28,9 +28,9 @@ from sekd_sfm.weights import DEFAULT_MODEL
 @click.option("--init", default=None, metavar="lite|PATH",
               help="Start from this SEKD-Lite (the embedded one, or a checkpoint) instead of a random student; "
                    "its channels are kept. Default: random initialisation.")
-@click.option("--train-precision", type=click.Choice(["fp32", "bf16", "auto"]), default=None,
-              help="Student training precision: bf16 = mixed precision, ~2x faster on CPUs with native bf16 "
-                   "(auto: there only). Default: fp32.")
+@click.option("--train-precision", type=click.Choice(TRAIN_PRECISIONS), default=None,
+              help="Student training precision: bf16 = mixed precision, faster on CPUs with native bf16 "
+                   "(auto: bf16 there only). Default: fp32.")
 @click.option("--val-every", type=click.IntRange(min=1), default=None, help="Steps between validations (default 250).")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Random seed (default 0).")
 @click.option("--num-threads", type=click.IntRange(min=0), default=1, show_default=True,

@@ -228,6 +228,9 @@ def test_distill_init_starts_from_the_given_lite_and_keeps_its_channels(tmp_path
     assert all(torch.allclose(start[k].float(), after[k].float(), atol=1e-6) for k in start if "weight" in k)
     recorded = json.loads((tmp_path / "b" / "config.json").read_text())
     assert recorded["init_sha256"] == file_sha256(source) and recorded["config"]["student"]["channels"] == [8, 16, 32]
+    # A resumed run continues from its own state: the --init file is no longer needed.
+    source.unlink()
+    assert distill(tmp_path / "b", resume=True, progress=False) == student
 
 
 def test_distill_in_bf16_trains_an_fp32_student(tmp_path, tiny_photos):

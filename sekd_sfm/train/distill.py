@@ -55,8 +55,12 @@ from ..weights import (
     load_model,
     save_checkpoint,
 )
+from .config import CHOICES
 from .data import TrainImages
 from .steps import autocast_dtype
+
+#: The training precisions `evolve` takes, the same for the student here.
+TRAIN_PRECISIONS = CHOICES["train_precision"]
 
 CONFIG_NAME, STATE_NAME, LAST_NAME, FINAL_NAME, METRICS_NAME = (
     "config.json", "state.pt", "last.pth", "student.pth", "metrics.jsonl")
@@ -101,8 +105,8 @@ class DistillConfig:
             raise SekdError(f"--steps and --batch-size must be >= 1 (got {self.steps}, {self.batch_size})")
         if len(self.crop) != 2 or any(c < 16 or c % 4 for c in self.crop):
             raise SekdError(f"--crop must be HEIGHT WIDTH, multiples of 4 and >= 16 (got {self.crop})")
-        if self.train_precision not in ("fp32", "bf16", "auto"):
-            raise SekdError(f"train_precision must be fp32, bf16 or auto (got {self.train_precision!r})")
+        if self.train_precision not in TRAIN_PRECISIONS:
+            raise SekdError(f"train_precision must be one of {', '.join(TRAIN_PRECISIONS)} (got {self.train_precision!r})")
         if not 0 < self.scale_range[0] <= self.scale_range[1]:
             raise SekdError(f"scale_range must satisfy 0 < low <= high (got {self.scale_range})")
         try:
@@ -278,13 +282,18 @@ def learning_rate(step: int, config: DistillConfig) -> float:
     return config.lr_min + 0.5 * (config.lr - config.lr_min) * (1 + math.cos(math.pi * min(t, 1.0)))
 
 
-def _teacher_path(config: DistillConfig) -> Path:
+def _model_path(name: str, option: str) -> Path:
+    """The file of an embedded model's name or of a checkpoint path; SekdError naming ``option`` otherwise."""
     try:
-        return embedded_model_path(config.teacher)
+        return embedded_model_path(name)
     except SekdError:
-        if Path(config.teacher).expanduser().is_file():
-            return Path(config.teacher).expanduser()
-        raise SekdError(f"--teacher {config.teacher}: neither an embedded model nor an existing checkpoint file") from None
+        if Path(name).expanduser().is_file():
+            return Path(name).expanduser()
+        raise SekdError(f"{option} {name}: neither an embedded model nor an existing checkpoint file") from None
+
+
+def _teacher_path(config: DistillConfig) -> Path:
+    return _model_path(config.teacher, "--teacher")
 
 
 def init_student(config: DistillConfig) -> tuple[Path, dict] | None:
@@ -292,12 +301,7 @@ def init_student(config: DistillConfig) -> tuple[Path, dict] | None:
     ``config.student`` set to its architecture; SekdError for a file that is not SEKD-Lite."""
     if not config.init:
         return None
-    try:
-        path = embedded_model_path(config.init)
-    except SekdError:
-        path = Path(config.init).expanduser()
-        if not path.is_file():
-            raise SekdError(f"--init {config.init}: neither an embedded model nor an existing checkpoint file") from None
+    path = _model_path(config.init, "--init")
     net, info = load_model(path, architecture=LITE_ARCHITECTURE)
     config.student = dict(info.meta.get("config", config.student))
     return path, net.state_dict()
@@ -383,7 +387,8 @@ def _run(folder: Path, config: DistillConfig, resume: bool, progress: bool) -> P
     with exclusive_lock(folder, "run folder"):
         teacher_path = _teacher_path(config)
         teacher_net, _ = load_model(teacher_path, architecture=FULL_ARCHITECTURE)
-        start = init_student(config)
+        # A resumed run continues from its state: its --init file is neither read nor needed.
+        start = None if resume else init_student(config)
         photos = GrayPhotos(photo_folder(config), config.long_side)
         if not resume:
             _write_json(folder / CONFIG_NAME, {"config": asdict(config), "teacher_file": str(teacher_path),
