@@ -243,6 +243,72 @@ def test_distill_in_bf16_trains_an_fp32_student(tmp_path, tiny_photos):
     assert load_model(student)[0](torch.rand(1, 1, 32, 48))[0].dtype == torch.float32
 
 
+def test_map_points_applies_a_homography_by_hand():
+    # x' = (2x + 1) / (0.5x + 1), y' = (y - 3) / (0.5x + 1)
+    h = torch.tensor([[2.0, 0.0, 1.0], [0.0, 1.0, -3.0], [0.5, 0.0, 1.0]])
+    xy = torch.tensor([[0.0, 0.0], [2.0, 5.0]])
+    assert torch.allclose(distill_module.map_points(h, xy), torch.tensor([[1.0, -3.0], [2.5, 1.0]]))
+
+
+def test_make_pair_views_show_the_same_scene_point_where_the_map_says(monkeypatch):
+    monkeypatch.setattr(distill_module, "photometric", lambda image, rng: image)  # geometry only
+    yy, xx = np.mgrid[0:300, 0:400]
+    gray = (127 + 60 * np.sin(xx / 23.0) + 60 * np.cos(yy / 31.0)).astype(np.uint8)  # smooth: bilinear is exact to ~1 level
+    config = DistillConfig(crop=[96, 128])
+    view0, view1, zero_to_one = distill_module.make_pair(gray, np.random.default_rng(3), config)
+    assert view0.shape == view1.shape == (96, 128) and zero_to_one.shape == (3, 3)
+    ys, xs = np.mgrid[8:88:8, 8:120:8]
+    xy0 = torch.tensor(np.stack([xs.ravel(), ys.ravel()], 1), dtype=torch.float32)
+    xy1 = distill_module.map_points(torch.from_numpy(zero_to_one).float(), xy0).numpy()
+    inside = (xy1[:, 0] > 1) & (xy1[:, 0] < 126) & (xy1[:, 1] > 1) & (xy1[:, 1] < 94)
+    assert inside.sum() > 40  # the views overlap mostly
+    seen0 = view0[ys.ravel()[inside], xs.ravel()[inside]]
+    seen1 = cv2.remap(view1, xy1[inside, 0:1], xy1[inside, 1:2], cv2.INTER_LINEAR)[:, 0]
+    assert np.abs(seen0 - seen1).max() < 6 / 255
+    assert not np.allclose(view0, view1, atol=0.05)  # a different view, not a copy
+
+
+def _two_views_with_peaks(desc1_roll: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Teacher logits with 3 peaks (view 0) and one-hot descriptors per 1/4 cell; view 1 = view 0
+    with its descriptor channels rolled by ``desc1_roll`` (0: identical views)."""
+    logit = torch.full((2, 1, 32, 32), -5.0)
+    for x, y in [(5, 6), (17, 10), (26, 25)]:
+        logit[0, 0, y, x] = 3.0
+    desc = torch.zeros(2, 128, 8, 8)
+    for c in range(64):
+        desc[:, c, c // 8, c % 8] = 1.0
+    desc[1] = desc[1].roll(desc1_roll, dims=0)
+    return logit, desc
+
+
+def test_pair_accuracy_and_loss_on_hand_made_descriptors():
+    identity = torch.eye(3)[None]
+    logit, same = _two_views_with_peaks(0)
+    assert distill_module.pair_accuracy(same, logit, identity, 500) == 1.0
+    # Orthogonal unit descriptors: positives at distance 0, negatives at sqrt(2); no triplet is active.
+    assert float(distill_module.pair_loss(same, logit, identity, 500)) == 0.0
+    _, other = _two_views_with_peaks(64)  # view 1's descriptors are orthogonal to all of view 0's
+    assert distill_module.pair_accuracy(other, logit, identity, 500) < 1.0
+    assert float(distill_module.pair_loss(other, logit, identity, 500)) == pytest.approx(0.0, abs=1e-6)  # pos = neg
+    shift = torch.tensor([[1.0, 0, 40], [0, 1, 0], [0, 0, 1]])[None]  # every peak leaves view 1
+    assert distill_module.pair_accuracy(same, logit, shift, 500) == 0.0
+    assert float(distill_module.pair_loss(same, logit, shift, 500)) == 0.0
+
+
+def test_distill_with_the_matching_term_trains_on_view_pairs(tmp_path, tiny_photos):
+    config = DistillConfig(**{**asdict(_tiny_config(tiny_photos, 2)), "pair_weight": 1.0, "crop": [64, 64]})
+    images, maps = distill_module.batch_for(distill_module.GrayPhotos(tiny_photos, 80), [0, 1], 0, config)
+    assert images.shape == (2, 1, 64, 64) and maps.shape == (1, 3, 3)
+    student = distill(tmp_path / "run", config, progress=False)
+    records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert all("pair" in r and np.isfinite(r["pair"]) for r in records if "loss" in r)
+    val = records[-1]["val"]
+    assert 0 <= val["pair_accuracy"] <= 1 and 0 <= val["teacher_pair_accuracy"] <= 1
+    assert isinstance(load_model(student)[0], SEKDLiteNet)
+    plain = _tiny_config(tiny_photos, 1)
+    assert distill_module.batch_for(distill_module.GrayPhotos(tiny_photos, 80), [0, 1], 0, plain)[1] is None
+
+
 @pytest.mark.parametrize("args, message", [
     (["--resume"], "no distillation to resume"),
     (["--init", "authors"], "is a full SEKD network .* checkpoint, but a SEKD-Lite"),
@@ -251,6 +317,7 @@ def test_distill_in_bf16_trains_an_fp32_student(tmp_path, tiny_photos):
     (["--photos", "{tmp}/nowhere"], "nowhere: photo folder not found"),
     (["--crop", "30", "48"], "--crop must be HEIGHT WIDTH, multiples of 4"),
     (["--teacher", "{tmp}/missing.pth"], "--teacher .*missing.pth: neither an embedded model nor"),
+    (["--pair-weight", "1", "--batch-size", "3"], "--pair-weight must be >= 0, and > 0 needs an even --batch-size"),
 ])
 def test_distill_bad_input_is_one_error_line(tmp_path, args, message):
     args = [a.format(tmp=tmp_path) for a in args]

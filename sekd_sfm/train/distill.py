@@ -14,7 +14,14 @@ The student learns to reproduce the teacher's outputs:
   finds them) weigh ``1 + peak_weight``;
 - descriptor: ``1 - cos`` between the L2-normalised student and teacher descriptors at every
   1/4-resolution cell, cells holding a teacher keypoint weighted ``1 + peak_weight``
-  (descriptors are sampled at keypoints).
+  (descriptors are sampled at keypoints);
+- matching (``pair_weight`` > 0, off by default): the batch holds pairs of views of one photo
+  window related by a known homography (a second rotation, scale and perspective warp), and
+  the student's descriptors at the teacher's keypoints of the first view and at their
+  positions in the second view enter the triplet loss ``evolve`` trains with (hardest
+  in-view negative, the authors' ratio form). Copying the teacher optimises closeness to
+  it; a 64-channel student cannot copy 128 dimensions exactly, and this term spends what it
+  can copy on telling points apart across viewpoints, which is what matching needs.
 
 Run folder (glue-factory style): ``config.json`` (every setting), ``state.pt`` (student,
 optimiser, step; written atomically every few minutes and at the end), ``last.pth`` (the
@@ -57,6 +64,7 @@ from ..weights import (
 )
 from .config import CHOICES
 from .data import TrainImages
+from .losses import triplet_loss
 from .steps import autocast_dtype
 
 #: The training precisions `evolve` takes, the same for the student here.
@@ -93,7 +101,16 @@ class DistillConfig:
     weight_decay: float = 1e-5
     peak_weight: float = 20.0
     detector_weight: float = 10.0         # total loss = detector_weight * detector + descriptor_weight * descriptor
-    descriptor_weight: float = 1.0
+    descriptor_weight: float = 1.0        #              + pair_weight * matching
+    #: Weight of the cross-view matching term (module docstring); 0 = plain distillation. When > 0 the
+    #: batch is batch_size / 2 view pairs (same cost per step), so batch_size must be even.
+    pair_weight: float = 0.0
+    # The second view of a pair relative to the first (stronger than the single-view warp: the
+    # student's descriptors fall behind the teacher's as the viewpoint change grows).
+    pair_scale_range: list = field(default_factory=lambda: [0.7, 1.4])
+    pair_perspective: float = 0.3
+    pair_rotation_deg: float = 30.0
+    pair_keypoints: int = 256             # teacher keypoints per pair entering the matching term (strongest first)
     val_photos: int = 16                  # the last photos (sorted names) are held out for validation
     val_every: int = 250                  # steps between validations
     save_every_s: float = 180.0           # seconds between state writes
@@ -109,6 +126,12 @@ class DistillConfig:
             raise SekdError(f"train_precision must be one of {', '.join(TRAIN_PRECISIONS)} (got {self.train_precision!r})")
         if not 0 < self.scale_range[0] <= self.scale_range[1]:
             raise SekdError(f"scale_range must satisfy 0 < low <= high (got {self.scale_range})")
+        if self.pair_weight < 0 or (self.pair_weight > 0 and self.batch_size % 2):
+            raise SekdError(f"--pair-weight must be >= 0, and > 0 needs an even --batch-size "
+                            f"(got {self.pair_weight}, {self.batch_size})")
+        if not 0 < self.pair_scale_range[0] <= self.pair_scale_range[1] or self.pair_keypoints < 2:
+            raise SekdError(f"pair_scale_range must satisfy 0 < low <= high and pair_keypoints >= 2 "
+                            f"(got {self.pair_scale_range}, {self.pair_keypoints})")
         try:
             build_lite(self.student)
         except (ValueError, TypeError, KeyError) as exc:
@@ -128,6 +151,25 @@ def split_photos(count: int, val_photos: int) -> tuple[list[int], list[int]]:
     return list(range(count - val)), list(range(count - val, count))
 
 
+def _warped_window(rng: np.random.Generator, centre: tuple[float, float], size_hw: tuple[float, float],
+                   perspective: float, rotation_deg: float) -> np.ndarray:
+    """4 x 2 corners (x, y) of a ``size_hw`` window around ``centre``, each corner moved up to
+    ``perspective`` x the window size, then rotated by up to ``rotation_deg``."""
+    (wh, ww), (cx, cy) = size_hw, centre
+    corners = np.array([[-ww / 2, -wh / 2], [ww / 2, -wh / 2], [ww / 2, wh / 2], [-ww / 2, wh / 2]])
+    corners += rng.uniform(-perspective, perspective, (4, 2)) * [ww, wh]
+    a = np.deg2rad(rng.uniform(-rotation_deg, rotation_deg))
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    return corners @ rot.T + [cx, cy]
+
+
+def _from_crop(crop_hw: tuple[int, int], target: np.ndarray) -> np.ndarray:
+    """3x3 map from the corners of a ``crop_hw`` crop to the 4 x 2 ``target`` corners."""
+    ch, cw = crop_hw
+    source = np.array([[0, 0], [cw - 1, 0], [cw - 1, ch - 1], [0, ch - 1]], dtype=np.float32)
+    return cv2.getPerspectiveTransform(source, target.astype(np.float32))
+
+
 def random_homography(rng: np.random.Generator, image_hw: tuple[int, int], crop_hw: tuple[int, int],
                       config: DistillConfig) -> np.ndarray:
     """3x3 map from crop pixels to image pixels: a random window at a random scale, rotated and perspective-distorted."""
@@ -136,13 +178,17 @@ def random_homography(rng: np.random.Generator, image_hw: tuple[int, int], crop_
     # Window size in image pixels (a crop pixel covers 1/scale image pixels), never larger than the image.
     wh, ww = min(h, ch / scale), min(w, cw / scale)
     cy, cx = rng.uniform(wh / 2, h - wh / 2), rng.uniform(ww / 2, w - ww / 2)
-    corners = np.array([[-ww / 2, -wh / 2], [ww / 2, -wh / 2], [ww / 2, wh / 2], [-ww / 2, wh / 2]])
-    corners += rng.uniform(-config.perspective, config.perspective, (4, 2)) * [ww, wh]
-    a = np.deg2rad(rng.uniform(-config.rotation_deg, config.rotation_deg))
-    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    target = corners @ rot.T + [cx, cy]
-    source = np.array([[0, 0], [cw - 1, 0], [cw - 1, ch - 1], [0, ch - 1]], dtype=np.float64)
-    return cv2.getPerspectiveTransform(source.astype(np.float32), target.astype(np.float32))
+    return _from_crop(crop_hw, _warped_window(rng, (cx, cy), (wh, ww), config.perspective, config.rotation_deg))
+
+
+def second_view(rng: np.random.Generator, crop_hw: tuple[int, int], config: DistillConfig) -> np.ndarray:
+    """3x3 map from the second view's crop pixels to the first view's: a rotation, perspective warp and
+    scale (``pair_*`` ranges) about the crop centre, so the views overlap mostly."""
+    ch, cw = crop_hw
+    scale = rng.uniform(*config.pair_scale_range)
+    window = _warped_window(rng, ((cw - 1) / 2, (ch - 1) / 2), (ch / scale, cw / scale),
+                            config.pair_perspective, config.pair_rotation_deg)
+    return _from_crop(crop_hw, window)
 
 
 def photometric(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -157,13 +203,29 @@ def photometric(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.round(np.clip(image, 0, 1) * 255) / 255
 
 
-def make_sample(gray: np.ndarray, rng: np.random.Generator, config: DistillConfig) -> np.ndarray:
-    """One augmented ``crop_h x crop_w`` float32 view in [0, 1] of an ``H x W`` uint8 photo."""
-    ch, cw = config.crop
-    homography = random_homography(rng, gray.shape, (ch, cw), config)
+def _view(gray: np.ndarray, homography: np.ndarray, rng: np.random.Generator, crop_hw: tuple[int, int]) -> np.ndarray:
+    """The ``crop_hw`` float32 view in [0, 1] whose pixel x shows ``gray`` at ``homography @ x``, jittered."""
+    ch, cw = crop_hw
     warped = cv2.warpPerspective(gray, homography, (cw, ch), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                  borderMode=cv2.BORDER_REFLECT_101)
     return photometric(warped.astype(np.float64) / 255, rng).astype(np.float32)
+
+
+def make_sample(gray: np.ndarray, rng: np.random.Generator, config: DistillConfig) -> np.ndarray:
+    """One augmented ``crop_h x crop_w`` float32 view in [0, 1] of an ``H x W`` uint8 photo."""
+    crop = tuple(config.crop)
+    homography = random_homography(rng, gray.shape, crop, config)
+    return _view(gray, homography, rng, crop)
+
+
+def make_pair(gray: np.ndarray, rng: np.random.Generator, config: DistillConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two augmented views of one window of ``gray`` and the 3x3 map from view-0 pixels to view-1 pixels."""
+    crop = tuple(config.crop)
+    to_image = random_homography(rng, gray.shape, crop, config)
+    one_to_zero = second_view(rng, crop, config)
+    view0 = _view(gray, to_image, rng, crop)
+    view1 = _view(gray, to_image @ one_to_zero, rng, crop)
+    return view0, view1, np.linalg.inv(one_to_zero)
 
 
 class GrayPhotos:
@@ -183,19 +245,36 @@ class GrayPhotos:
         return cv2.cvtColor(self.images.rgb(index), cv2.COLOR_RGB2GRAY)
 
 
-def batch_for(photos: GrayPhotos, indices: list[int], step: int, config: DistillConfig) -> torch.Tensor:
-    """The training batch of ``step``: ``B x 1 x h x w``, depending only on (seed, step)."""
+def batch_for(photos: GrayPhotos, indices: list[int], step: int, config: DistillConfig
+              ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The training batch of ``step``, depending only on (seed, step): ``B x 1 x h x w`` views and, with
+    ``pair_weight`` > 0, the ``B/2 x 3 x 3`` maps from view ``2i``'s pixels to view ``2i + 1``'s (else None)."""
     rng = np.random.default_rng([config.seed, 1, step])
-    chosen = rng.choice(indices, size=config.batch_size, replace=len(indices) < config.batch_size)
-    views = [make_sample(photos.gray(int(i)), np.random.default_rng([config.seed, 2, step, k]), config)
-             for k, i in enumerate(chosen)]
-    return torch.from_numpy(np.stack(views))[:, None]
+    if config.pair_weight <= 0:
+        chosen = rng.choice(indices, size=config.batch_size, replace=len(indices) < config.batch_size)
+        views = [make_sample(photos.gray(int(i)), np.random.default_rng([config.seed, 2, step, k]), config)
+                 for k, i in enumerate(chosen)]
+        return torch.from_numpy(np.stack(views))[:, None], None
+    pairs = config.batch_size // 2
+    chosen = rng.choice(indices, size=pairs, replace=len(indices) < pairs)
+    made = [make_pair(photos.gray(int(i)), np.random.default_rng([config.seed, 4, step, k]), config)
+            for k, i in enumerate(chosen)]
+    views = [view for view0, view1, _ in made for view in (view0, view1)]
+    maps = np.stack([m for _, _, m in made]).astype(np.float32)
+    return torch.from_numpy(np.stack(views))[:, None], torch.from_numpy(maps)
 
 
 def validation_batch(photos: GrayPhotos, indices: list[int], config: DistillConfig) -> torch.Tensor:
     """Fixed validation views (one per held-out photo, seed-independent)."""
     views = [make_sample(photos.gray(i), np.random.default_rng([12345, 3, i]), config) for i in indices]
     return torch.from_numpy(np.stack(views))[:, None]
+
+
+def validation_pairs(photos: GrayPhotos, indices: list[int], config: DistillConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fixed validation view pairs (one per held-out photo, seed-independent): ``2N x 1 x h x w``, ``N x 3 x 3``."""
+    made = [make_pair(photos.gray(i), np.random.default_rng([12345, 5, i]), config) for i in indices]
+    views = np.stack([view for view0, view1, _ in made for view in (view0, view1)])
+    return torch.from_numpy(views)[:, None], torch.from_numpy(np.stack([m for _, _, m in made]).astype(np.float32))
 
 
 # --- losses ------------------------------------------------------------------------------
@@ -223,6 +302,59 @@ def distill_losses(logits: torch.Tensor, desc: torch.Tensor, teacher_logit: torc
     return {"detector": detector, "descriptor": descriptor}
 
 
+def map_points(homography: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    """``N x 2`` pixels (x, y) through a 3x3 homography -> ``N x 2``."""
+    mapped = torch.cat([xy, xy.new_ones(len(xy), 1)], 1) @ homography.t()
+    return mapped[:, :2] / mapped[:, 2:]
+
+
+def _correspondences(teacher_logit: torch.Tensor, peaks: torch.Tensor, pair: int, homography: torch.Tensor,
+                     max_keypoints: int, border: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
+    """(``N x 2`` view-0 pixels, ``N x 2`` view-1 pixels) of pair ``pair``: the teacher's keypoints in
+    view 0 (strongest ``max_keypoints``) whose position in view 1 lies at least ``border`` px inside it."""
+    h, w = teacher_logit.shape[-2:]
+    rows, cols = torch.nonzero(peaks[2 * pair, 0], as_tuple=True)
+    strongest = teacher_logit[2 * pair, 0, rows, cols].argsort(descending=True)[:max_keypoints]
+    xy0 = torch.stack([cols[strongest], rows[strongest]], 1).float()
+    xy1 = map_points(homography, xy0)
+    inside = ((xy1[:, 0] >= border) & (xy1[:, 0] <= w - 1 - border)
+              & (xy1[:, 1] >= border) & (xy1[:, 1] <= h - 1 - border))
+    return xy0[inside], xy1[inside]
+
+
+def pair_loss(desc: torch.Tensor, teacher_logit: torch.Tensor, maps: torch.Tensor, max_keypoints: int) -> torch.Tensor:
+    """Triplet loss (``evolve``'s ratio form) of the student's descriptors across each view pair.
+
+    ``desc`` B x 128 x H/4 x W/4 raw student descriptors of B/2 pairs (views 2i, 2i+1),
+    ``teacher_logit`` B x 1 x H x W, ``maps`` B/2 x 3 x 3 (view-0 pixels -> view-1 pixels).
+    Pairs with fewer than 2 correspondences (``_correspondences``) count 0; the mean over pairs.
+    """
+    h, w = teacher_logit.shape[-2:]
+    peaks = teacher_peaks(teacher_logit)
+    total = desc.new_zeros(())
+    for i, homography in enumerate(maps):
+        xy0, xy1 = _correspondences(teacher_logit, peaks, i, homography, max_keypoints)
+        if len(xy0) >= 2:
+            total = total + triplet_loss(sample_descriptors(desc[2 * i], xy0, h, w),
+                                         sample_descriptors(desc[2 * i + 1], xy1, h, w))
+    return total / len(maps)
+
+
+def pair_accuracy(desc: torch.Tensor, teacher_logit: torch.Tensor, maps: torch.Tensor, max_keypoints: int) -> float:
+    """Share of the correspondences of ``pair_loss`` whose view-0 descriptor's nearest view-1
+    descriptor (among the corresponding points) is its own: a cheap proxy of matching accuracy."""
+    h, w = teacher_logit.shape[-2:]
+    peaks = teacher_peaks(teacher_logit)
+    right = total = 0
+    for i, homography in enumerate(maps):
+        xy0, xy1 = _correspondences(teacher_logit, peaks, i, homography, max_keypoints)
+        if len(xy0):
+            sim = sample_descriptors(desc[2 * i], xy0, h, w) @ sample_descriptors(desc[2 * i + 1], xy1, h, w).t()
+            right += int((sim.argmax(1) == torch.arange(len(xy0))).sum())
+            total += len(xy0)
+    return right / max(total, 1)
+
+
 class Teacher:
     """The full SEKD network in fp32 eval mode, prepared for speed (block-diagonal deconvolutions, channels-last)."""
 
@@ -241,12 +373,14 @@ class Teacher:
 
 @torch.no_grad()
 def validate(student: SEKDLiteNet, teacher: Teacher, images: torch.Tensor, peak_weight: float,
-             max_keypoints: int = 500) -> dict[str, float]:
+             max_keypoints: int = 500, pairs: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict[str, float]:
     """Student vs teacher on fixed held-out views.
 
     ``repeatability``: share of the teacher's top ``max_keypoints`` keypoints the student
     detects within 2 px (same NMS as extraction); ``cosine_median``: median descriptor cosine at
-    the teacher's keypoints (descriptors sampled as at extraction); plus both losses.
+    the teacher's keypoints (descriptors sampled as at extraction); plus both losses. With
+    ``pairs`` (views, maps of ``validation_pairs``): ``pair_accuracy`` of the student and
+    ``teacher_pair_accuracy`` (the same measure for the teacher's descriptors, its reference).
     """
     was_training = student.training
     student.eval()
@@ -266,10 +400,17 @@ def validate(student: SEKDLiteNet, teacher: Teacher, images: torch.Tensor, peak_
                 hits += int((torch.cdist(t_xy.float(), s_xy.float()).min(1).values <= 2).sum())
             cos = (sample_descriptors(desc[b], t_xy.float(), h, w) * sample_descriptors(t_desc[b], t_xy.float(), h, w)).sum(1)
             cosines.append(cos)
+    extra = {}
+    if pairs is not None:
+        views, maps = pairs
+        _, pair_desc, _ = student.forward_train(views)
+        pair_logit, teacher_pair_desc = teacher(views)
+        extra = {"pair_accuracy": pair_accuracy(pair_desc, pair_logit, maps, max_keypoints),
+                 "teacher_pair_accuracy": pair_accuracy(teacher_pair_desc, pair_logit, maps, max_keypoints)}
     student.train(was_training)
     cos = torch.cat(cosines) if cosines else torch.zeros(1)
     return {**losses, "repeatability": hits / max(total, 1), "cosine_median": float(cos.median()),
-            "teacher_keypoints": total / images.shape[0]}
+            "teacher_keypoints": total / images.shape[0], **extra}
 
 
 # --- the run -----------------------------------------------------------------------------
@@ -419,7 +560,7 @@ def _train(folder: Path, config: DistillConfig, teacher: Teacher, photos: GrayPh
                             f"{str(exc).splitlines()[0] if str(exc) else ''}); start a new run in another folder") from exc
     _trim_metrics(folder, step)
     train_idx, val_idx = split_photos(len(photos), config.val_photos)
-    val_images = validation_batch(photos, val_idx, config)
+    val_images, val_pairs = validation_batch(photos, val_idx, config), validation_pairs(photos, val_idx, config)
     meta = {"teacher": Path(teacher_path).name, "teacher_sha256": file_sha256(teacher_path),
             "distill_config": asdict(config), "photos": len(train_idx)}
     last_save = time.monotonic()
@@ -427,7 +568,7 @@ def _train(folder: Path, config: DistillConfig, teacher: Teacher, photos: GrayPh
     bar = tqdm(total=config.steps, initial=step, desc="distill", unit="step", disable=not progress)
     try:
         while step < config.steps:
-            images = batch_for(photos, train_idx, step, config)
+            images, maps = batch_for(photos, train_idx, step, config)
             t_logit, t_desc = teacher(images)
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate(step, config)
@@ -435,6 +576,9 @@ def _train(folder: Path, config: DistillConfig, teacher: Teacher, photos: GrayPh
                 logits, desc, _ = student.forward_train(images)
             losses = distill_losses(logits.float(), desc.float(), t_logit, t_desc, config.peak_weight)
             loss = config.detector_weight * losses["detector"] + config.descriptor_weight * losses["descriptor"]
+            if maps is not None:
+                losses["pair"] = pair_loss(desc.float(), t_logit, maps, config.pair_keypoints)
+                loss = loss + config.pair_weight * losses["pair"]
             losses = {k: v.detach() for k, v in losses.items()}  # scalars for the log, outside the graph
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -448,7 +592,7 @@ def _train(folder: Path, config: DistillConfig, teacher: Teacher, photos: GrayPh
                       **{k: float(v) for k, v in losses.items()}}
             _log(folder, {**record, "time": time.time()})
             if step % config.val_every == 0 or step == config.steps:
-                val = validate(student, teacher, val_images, config.peak_weight)
+                val = validate(student, teacher, val_images, config.peak_weight, pairs=val_pairs)
                 _log(folder, {"step": step, "val": val, "time": time.time()})
                 bar.write(f"step {step}: " + ", ".join(f"{k} {v:.4f}" for k, v in val.items()))
             if time.monotonic() - last_save >= config.save_every_s or step == config.steps:
