@@ -122,8 +122,10 @@ def test_embedded_lite_agrees_with_its_reference_and_its_teacher_on_the_golden_c
     assert (prob16 - prob[:, 0]).abs().max() < 0.1
     assert torch.nn.functional.cosine_similarity(desc16, desc, dim=1).median() > 0.99
     # Against the teacher's outputs (the authors' model): a distilled copy, not an identical one.
-    # Measured when shipping: descriptor cosine median 0.583 over the 32 x 40 cells, mean |dp| 0.0081
-    # (the teacher's probabilities span 0.2-0.67); an untrained Lite gives cosine ~0 here.
+    # Measured when shipping: descriptor cosine median 0.547 over the 32 x 40 cells, mean |dp| 0.0085
+    # (the teacher's probabilities span 0.2-0.67); an untrained Lite gives cosine ~0 here. (The
+    # matching term of its second distillation traded closeness to the teacher, 0.583 before, for
+    # matching across viewpoints.)
     teacher_prob = torch.from_numpy(golden["location"])
     cosine = torch.nn.functional.cosine_similarity(desc, torch.from_numpy(golden["descriptor"]), dim=1)
     assert cosine.median() > 0.5
@@ -228,6 +230,7 @@ def test_distill_init_starts_from_the_given_lite_and_keeps_its_channels(tmp_path
     assert all(torch.allclose(start[k].float(), after[k].float(), atol=1e-6) for k in start if "weight" in k)
     recorded = json.loads((tmp_path / "b" / "config.json").read_text())
     assert recorded["init_sha256"] == file_sha256(source) and recorded["config"]["student"]["channels"] == [8, 16, 32]
+    assert load_model(student)[1].meta["init_sha256"] == file_sha256(source)  # the lineage travels with the model
     # A resumed run continues from its own state: the --init file is no longer needed.
     source.unlink()
     assert distill(tmp_path / "b", resume=True, progress=False) == student

@@ -537,11 +537,16 @@ def _run(folder: Path, config: DistillConfig, resume: bool, progress: bool) -> P
                                                "init_sha256": file_sha256(start[0]) if start else None,
                                                "photo_count": len(photos)})
         return _train(folder, config, Teacher(teacher_net), photos, teacher_path, progress,
-                      start[1] if start else None)
+                      start[1] if start else None, _recorded_init_sha256(folder))
+
+
+def _recorded_init_sha256(folder: Path) -> str | None:
+    """The SHA-256 of the run's --init checkpoint as its config.json recorded it (None without one)."""
+    return json.loads((folder / CONFIG_NAME).read_text()).get("init_sha256")
 
 
 def _train(folder: Path, config: DistillConfig, teacher: Teacher, photos: GrayPhotos, teacher_path: Path,
-           progress: bool, initial: dict | None = None) -> Path:
+           progress: bool, initial: dict | None = None, init_sha256: str | None = None) -> Path:
     torch.manual_seed(config.seed)
     student = build_lite(config.student).train()
     if initial is not None:  # a resumed run's state, loaded below, replaces it
@@ -562,7 +567,7 @@ def _train(folder: Path, config: DistillConfig, teacher: Teacher, photos: GrayPh
     train_idx, val_idx = split_photos(len(photos), config.val_photos)
     val_images, val_pairs = validation_batch(photos, val_idx, config), validation_pairs(photos, val_idx, config)
     meta = {"teacher": Path(teacher_path).name, "teacher_sha256": file_sha256(teacher_path),
-            "distill_config": asdict(config), "photos": len(train_idx)}
+            "distill_config": asdict(config), "photos": len(train_idx), "init_sha256": init_sha256}
     last_save = time.monotonic()
     done = _snapshot(student, optimizer, step)
     bar = tqdm(total=config.steps, initial=step, desc="distill", unit="step", disable=not progress)
