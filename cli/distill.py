@@ -34,7 +34,8 @@ from sekd_sfm.weights import DEFAULT_MODEL
 @click.option("--pair-weight", type=click.FloatRange(min=0), default=None,
               help="Weight of the cross-view matching term: the batch becomes pairs of views of one photo related "
                    "by a known homography, and the student's descriptors are trained to tell the teacher's "
-                   "keypoints apart across them (evolve's triplet loss). Default: 0 (plain distillation).")
+                   "keypoints apart across them (evolve's triplet loss). The shipped Lite: 3, in a second "
+                   "run from a plain one (--init). Default: 0 (plain distillation).")
 @click.option("--val-every", type=click.IntRange(min=1), default=None, help="Steps between validations (default 250).")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Random seed (default 0).")
 @click.option("--num-threads", type=click.IntRange(min=0), default=1, show_default=True,
@@ -61,8 +62,8 @@ def distill(output, teacher, photos, steps, batch_size, crop, lr, channels, init
       sekd distill -o runs/lite                                   # shared COCO photos, 3000 steps
       sekd distill -o runs/lite --steps 6000 --num-threads 2
       sekd distill -o runs/lite --resume                          # after Ctrl-C or a crash
-      sekd distill -o runs/lite2 --init lite --lr 1e-3 --train-precision auto   # continue the shipped Lite
-      sekd distill -o runs/lite3 --init lite --lr 1e-3 --pair-weight 1            # ... adding the matching term
+      sekd distill -o runs/lite2 --init runs/lite/student.pth --lr 1e-3 --steps 2000 \
+          --pair-weight 3 --train-precision auto    # stage 2 of the shipped Lite: learn to match
       sekd extract photos/ -o features.h5 --weights runs/lite/student.pth
     """
     given = {"teacher": teacher, "photos": str(photos) if photos else None, "steps": steps, "batch_size": batch_size,
