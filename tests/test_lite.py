@@ -287,15 +287,19 @@ def _two_views_with_peaks(desc1_roll: int) -> tuple[torch.Tensor, torch.Tensor]:
 def test_pair_accuracy_and_loss_on_hand_made_descriptors():
     identity = torch.eye(3)[None]
     logit, same = _two_views_with_peaks(0)
-    assert distill_module.pair_accuracy(same, logit, identity, 500) == 1.0
+    found = distill_module.pair_correspondences(logit, identity, 500)
+    assert [len(xy0) for xy0, _ in found] == [3] and torch.equal(found[0][0], found[0][1])  # the 3 peaks, unmoved
+    assert distill_module.pair_accuracy(same, found, 32, 32) == 1.0
     # Orthogonal unit descriptors: positives at distance 0, negatives at sqrt(2); no triplet is active.
-    assert float(distill_module.pair_loss(same, logit, identity, 500)) == 0.0
+    assert float(distill_module.pair_loss(same, found, 32, 32)) == 0.0
     _, other = _two_views_with_peaks(64)  # view 1's descriptors are orthogonal to all of view 0's
-    assert distill_module.pair_accuracy(other, logit, identity, 500) < 1.0
-    assert float(distill_module.pair_loss(other, logit, identity, 500)) == pytest.approx(0.0, abs=1e-6)  # pos = neg
+    assert distill_module.pair_accuracy(other, found, 32, 32) < 1.0
+    assert float(distill_module.pair_loss(other, found, 32, 32)) == pytest.approx(0.0, abs=1e-6)  # pos = neg
     shift = torch.tensor([[1.0, 0, 40], [0, 1, 0], [0, 0, 1]])[None]  # every peak leaves view 1
-    assert distill_module.pair_accuracy(same, logit, shift, 500) == 0.0
-    assert float(distill_module.pair_loss(same, logit, shift, 500)) == 0.0
+    gone = distill_module.pair_correspondences(logit, shift, 500)
+    assert [len(xy0) for xy0, _ in gone] == [0]
+    assert distill_module.pair_accuracy(same, gone, 32, 32) == 0.0
+    assert float(distill_module.pair_loss(same, gone, 32, 32)) == 0.0
 
 
 def test_distill_with_the_matching_term_trains_on_view_pairs(tmp_path, tiny_photos):

@@ -308,49 +308,57 @@ def map_points(homography: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
     return mapped[:, :2] / mapped[:, 2:]
 
 
-def _correspondences(teacher_logit: torch.Tensor, peaks: torch.Tensor, pair: int, homography: torch.Tensor,
-                     max_keypoints: int, border: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
-    """(``N x 2`` view-0 pixels, ``N x 2`` view-1 pixels) of pair ``pair``: the teacher's keypoints in
-    view 0 (strongest ``max_keypoints``) whose position in view 1 lies at least ``border`` px inside it."""
+def pair_correspondences(teacher_logit: torch.Tensor, maps: torch.Tensor, max_keypoints: int,
+                         border: int = 4) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Per view pair (views 2i, 2i+1 of ``teacher_logit`` B x 1 x H x W; ``maps`` B/2 x 3 x 3, view-0
+    pixels -> view-1 pixels): (``N x 2`` view-0 pixels, ``N x 2`` view-1 pixels) of the teacher's
+    keypoints in view 0 (strongest ``max_keypoints``) whose position in view 1 lies at least
+    ``border`` px inside it."""
     h, w = teacher_logit.shape[-2:]
-    rows, cols = torch.nonzero(peaks[2 * pair, 0], as_tuple=True)
-    strongest = teacher_logit[2 * pair, 0, rows, cols].argsort(descending=True)[:max_keypoints]
-    xy0 = torch.stack([cols[strongest], rows[strongest]], 1).float()
-    xy1 = map_points(homography, xy0)
-    inside = ((xy1[:, 0] >= border) & (xy1[:, 0] <= w - 1 - border)
-              & (xy1[:, 1] >= border) & (xy1[:, 1] <= h - 1 - border))
-    return xy0[inside], xy1[inside]
+    peaks = teacher_peaks(teacher_logit)
+    found = []
+    for i, homography in enumerate(maps):
+        rows, cols = torch.nonzero(peaks[2 * i, 0], as_tuple=True)
+        strongest = teacher_logit[2 * i, 0, rows, cols].argsort(descending=True)[:max_keypoints]
+        xy0 = torch.stack([cols[strongest], rows[strongest]], 1).float()
+        xy1 = map_points(homography, xy0)
+        inside = ((xy1[:, 0] >= border) & (xy1[:, 0] <= w - 1 - border)
+                  & (xy1[:, 1] >= border) & (xy1[:, 1] <= h - 1 - border))
+        found.append((xy0[inside], xy1[inside]))
+    return found
 
 
-def pair_loss(desc: torch.Tensor, teacher_logit: torch.Tensor, maps: torch.Tensor, max_keypoints: int) -> torch.Tensor:
+def _pair_descriptors(desc: torch.Tensor, i: int, xy0: torch.Tensor, xy1: torch.Tensor,
+                      height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit descriptors of pair ``i`` at its correspondences: view 2i at ``xy0``, view 2i+1 at ``xy1``."""
+    return (sample_descriptors(desc[2 * i], xy0, height, width),
+            sample_descriptors(desc[2 * i + 1], xy1, height, width))
+
+
+def pair_loss(desc: torch.Tensor, correspondences: list[tuple[torch.Tensor, torch.Tensor]],
+              height: int, width: int) -> torch.Tensor:
     """Triplet loss (``evolve``'s ratio form) of the student's descriptors across each view pair.
 
-    ``desc`` B x 128 x H/4 x W/4 raw student descriptors of B/2 pairs (views 2i, 2i+1),
-    ``teacher_logit`` B x 1 x H x W, ``maps`` B/2 x 3 x 3 (view-0 pixels -> view-1 pixels).
-    Pairs with fewer than 2 correspondences (``_correspondences``) count 0; the mean over pairs.
+    ``desc`` B x 128 x H/4 x W/4 raw student descriptors of B/2 pairs (views 2i, 2i+1) of
+    ``height x width`` px, ``correspondences`` from :func:`pair_correspondences`. Pairs with
+    fewer than 2 correspondences count 0; the mean over pairs.
     """
-    h, w = teacher_logit.shape[-2:]
-    peaks = teacher_peaks(teacher_logit)
     total = desc.new_zeros(())
-    for i, homography in enumerate(maps):
-        xy0, xy1 = _correspondences(teacher_logit, peaks, i, homography, max_keypoints)
+    for i, (xy0, xy1) in enumerate(correspondences):
         if len(xy0) >= 2:
-            total = total + triplet_loss(sample_descriptors(desc[2 * i], xy0, h, w),
-                                         sample_descriptors(desc[2 * i + 1], xy1, h, w))
-    return total / len(maps)
+            total = total + triplet_loss(*_pair_descriptors(desc, i, xy0, xy1, height, width))
+    return total / len(correspondences)
 
 
-def pair_accuracy(desc: torch.Tensor, teacher_logit: torch.Tensor, maps: torch.Tensor, max_keypoints: int) -> float:
-    """Share of the correspondences of ``pair_loss`` whose view-0 descriptor's nearest view-1
-    descriptor (among the corresponding points) is its own: a cheap proxy of matching accuracy."""
-    h, w = teacher_logit.shape[-2:]
-    peaks = teacher_peaks(teacher_logit)
+def pair_accuracy(desc: torch.Tensor, correspondences: list[tuple[torch.Tensor, torch.Tensor]],
+                  height: int, width: int) -> float:
+    """Share of the correspondences whose view-0 descriptor's nearest view-1 descriptor (among the
+    corresponding points) is its own: a cheap proxy of matching accuracy (arguments as ``pair_loss``)."""
     right = total = 0
-    for i, homography in enumerate(maps):
-        xy0, xy1 = _correspondences(teacher_logit, peaks, i, homography, max_keypoints)
+    for i, (xy0, xy1) in enumerate(correspondences):
         if len(xy0):
-            sim = sample_descriptors(desc[2 * i], xy0, h, w) @ sample_descriptors(desc[2 * i + 1], xy1, h, w).t()
-            right += int((sim.argmax(1) == torch.arange(len(xy0))).sum())
+            a, b = _pair_descriptors(desc, i, xy0, xy1, height, width)
+            right += int(((a @ b.t()).argmax(1) == torch.arange(len(xy0))).sum())
             total += len(xy0)
     return right / max(total, 1)
 
@@ -405,8 +413,10 @@ def validate(student: SEKDLiteNet, teacher: Teacher, images: torch.Tensor, peak_
         views, maps = pairs
         _, pair_desc, _ = student.forward_train(views)
         pair_logit, teacher_pair_desc = teacher(views)
-        extra = {"pair_accuracy": pair_accuracy(pair_desc, pair_logit, maps, max_keypoints),
-                 "teacher_pair_accuracy": pair_accuracy(teacher_pair_desc, pair_logit, maps, max_keypoints)}
+        found = pair_correspondences(pair_logit, maps, max_keypoints)  # once for both scores
+        size = views.shape[-2:]
+        extra = {"pair_accuracy": pair_accuracy(pair_desc, found, *size),
+                 "teacher_pair_accuracy": pair_accuracy(teacher_pair_desc, found, *size)}
     student.train(was_training)
     cos = torch.cat(cosines) if cosines else torch.zeros(1)
     return {**losses, "repeatability": hits / max(total, 1), "cosine_median": float(cos.median()),
@@ -582,7 +592,8 @@ def _train(folder: Path, config: DistillConfig, teacher: Teacher, photos: GrayPh
             losses = distill_losses(logits.float(), desc.float(), t_logit, t_desc, config.peak_weight)
             loss = config.detector_weight * losses["detector"] + config.descriptor_weight * losses["descriptor"]
             if maps is not None:
-                losses["pair"] = pair_loss(desc.float(), t_logit, maps, config.pair_keypoints)
+                found = pair_correspondences(t_logit, maps, config.pair_keypoints)
+                losses["pair"] = pair_loss(desc.float(), found, *images.shape[-2:])
                 loss = loss + config.pair_weight * losses["pair"]
             losses = {k: v.detach() for k, v in losses.items()}  # scalars for the log, outside the graph
             optimizer.zero_grad(set_to_none=True)
