@@ -207,3 +207,47 @@ def test_card_names_the_run_a_forked_run_came_from():
     state = {"done": [], "forked_from": {"run": "/x/run_v2", "after": "r1_a", "changed": ["spread_weight"]}}
     (row,) = ship._fork_rows(state)
     assert row.startswith("| forked | from `run_v2` after `r1_a`") and "spread_weight" in row
+
+
+def test_ship_a_weight_average_of_step_models_names_its_ingredients(tmp_path, shared, run):
+    import shutil
+
+    import torch
+
+    from sekd_sfm.train.soup import average_checkpoints
+
+    # Two step models with our embedded weights (files differ by their metadata only), so the
+    # 0.75 / 0.25 average is the embedded network exactly and passes the guard.
+    shutil.copy(OWN, run / "models" / "r1_d.pth")
+    checkpoint = torch.load(OWN, weights_only=True)
+    torch.save({"state_dict": checkpoint["state_dict"], "sekd_sfm": {"task": "r2_d"}}, run / "models" / "r2_d.pth")
+    soup = average_checkpoints([run / "models/r1_d.pth", run / "models/r2_d.pth"], tmp_path / "soup.pth", [3, 1])
+    dest = ship.ship_model(run, tmp_path / "m.pth", card=tmp_path / "card.md", which=str(soup))
+    shipped = load_model(dest)[1].meta
+    assert [(s["task"], s["weight"]) for s in shipped["average"]] == [("r1_d", 0.75), ("r2_d", 0.25)]
+    assert shipped["source"] == "soup.pth" and shipped["schedule"] == "cpu" and "init" not in shipped
+    # The average exists once its later ingredient does: the run's time up to r2_d's validation.
+    assert shipped["wall_seconds"] == round(ship.training_wall_seconds(run / "train.log", "validation after r2_d"))
+    ours = torch.load(OWN, weights_only=True)["state_dict"]
+    assert all(torch.equal(v, ours[k]) for k, v in torch.load(dest, weights_only=True)["state_dict"].items())
+    card = (tmp_path / "card.md").read_text()
+    assert "the weighted average 0.75 x `r1_d` + 0.25 x `r2_d` of the run's step models" in card
+    assert f"python -m sekd_sfm.train.soup {run}/models/r1_d.pth {run}/models/r2_d.pth --weights 0.75 0.25" in card
+
+
+def test_ship_refuses_an_average_with_a_checkpoint_from_elsewhere(tmp_path, run):
+    from sekd_sfm.train.soup import average_checkpoints
+
+    soup = average_checkpoints([run / "models/r0_d.pth", AUTHORS], tmp_path / "soup.pth")
+    with pytest.raises(SekdError, match="sekd_authors.pth: an ingredient of this weight average is not a step model"):
+        ship.ship_model(run, tmp_path / "m.pth", which=str(soup))
+    assert not (tmp_path / "m.pth").exists()
+
+
+def test_starting_model_records_the_lineage_of_a_shipped_model(tmp_path):
+    facts = ship.starting_model(str(OWN))
+    meta = load_model(OWN)[1].meta
+    assert facts["file"] == "sekd_own.pth" and facts["sha256"] == file_sha256(OWN, 64)
+    assert facts["shipped_from"] == meta["shipped_from"] and facts["command"] == meta["command"]
+    assert ship.starting_model("") is None
+    assert ship.starting_model(str(tmp_path / "gone.pth")) == {"file": "gone.pth"}

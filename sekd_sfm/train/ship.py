@@ -3,6 +3,10 @@
 ``python -m sekd_sfm.train.ship RUN [--card docs/model_card.md]`` copies ``RUN/best.pth``
 (weights and metadata, fp32) to ``sekd_sfm/models/sekd_own.pth`` and writes a model
 card that says what the model was trained on, how, for how long, and its checksum.
+``--which`` may also name a weight average of the run's step models
+(``python -m sekd_sfm.train.soup``); the card then lists its ingredients. A run that
+started from another model (``init_weights``) records that model's checksum and training
+facts, so the lineage travels with the shipped file.
 """
 from __future__ import annotations
 
@@ -55,9 +59,15 @@ def training_wall_seconds(log: Path, until: str | None = None) -> float:
 
 
 def evolve_command(config: TrainConfig, run: Path) -> str:
-    """The ``sekd evolve`` command that starts this run: schedule, seed and every changed field."""
+    """The ``sekd evolve`` command that starts this run: schedule, seed and every changed field.
+
+    A starting model (``init_weights``) is shown by file name only: where it sat on the training
+    machine means nothing elsewhere; the card's "starts from" row identifies it by checksum.
+    """
     base = schedule_config(config.schedule)
-    changed = [f"--set {f.name}={json.dumps(getattr(config, f.name))}" for f in dataclasses.fields(TrainConfig)
+    shown = {"init_weights": Path(config.init_weights).name} if config.init_weights else {}
+    changed = [f"--set {f.name}={json.dumps(shown.get(f.name, getattr(config, f.name)))}"
+               for f in dataclasses.fields(TrainConfig)
                if f.name not in ("schedule", "images", "seed", "num_threads", "num_workers", "progress", "device")
                and getattr(config, f.name) != getattr(base, f.name)]
     return " ".join([f"sekd evolve --images {_display_path(config.images)} --schedule {config.schedule}",
@@ -67,6 +77,61 @@ def evolve_command(config: TrainConfig, run: Path) -> str:
 def _validated_line(meta: dict) -> str | None:
     """The log line that ends the training of this model (its validation), if it names a step."""
     return f"validation after {meta['task']}" if meta.get("task") else None
+
+
+def soup_ingredients(run: Path, soup: list[dict]) -> list[dict]:
+    """``[{task, sha256, weight}]``: the step models of ``run`` that a weight average is made of.
+
+    ``soup``: the ``soup`` record of a ``python -m sekd_sfm.train.soup`` checkpoint. Ingredients
+    are recognised by checksum among ``run/models/*.pth``, wherever the soup was made; SekdError
+    for one that is not a step model of the run (the card could not say how it was trained).
+    """
+    by_sha = {file_sha256(path): path.stem for path in sorted((Path(run) / "models").glob("*.pth"))}
+    ingredients = []
+    for item in soup:
+        task = by_sha.get(item["sha256"])
+        if task is None:
+            raise SekdError(f"{item['file']}: an ingredient of this weight average is not a step model of {run} "
+                            "(models/*.pth); ship averages of one run's steps")
+        ingredients.append({"task": task, "sha256": item["sha256"], "weight": item["weight"]})
+    return ingredients
+
+
+def soup_command(run: Path, ingredients: list[dict]) -> str:
+    """The ``python -m sekd_sfm.train.soup`` command that rebuilds the average from the run's step models."""
+    files = " ".join(f"{run}/models/{item['task']}.pth" for item in ingredients)
+    weights = " ".join(f"{item['weight']:g}" for item in ingredients)
+    return f"python -m sekd_sfm.train.soup {files} --weights {weights} -o soup.pth"
+
+
+def starting_model(init_weights: str) -> dict | None:
+    """What a run started from: file name, SHA-256 and, for a shipped model, how it was trained.
+
+    The facts of a shipped model (``shipped_from``, ``source``, ``wall_seconds``, ``command``
+    and its own ``init``) are copied, so a chain of runs is recorded back to a random start.
+    None for a run from random weights; only the name when the file is no longer there.
+    """
+    if not init_weights:
+        return None
+    path = Path(init_weights)
+    if not path.is_file():
+        return {"file": path.name}
+    meta = load_model(path)[1].meta
+    facts = {"file": path.name, "sha256": file_sha256(path, 64)}
+    facts.update({k: meta[k] for k in ("shipped_from", "source", "wall_seconds", "command", "init") if k in meta})
+    return facts
+
+
+def _trained_meta(run: Path, info) -> dict:
+    """The training facts of the shipped checkpoint: its own, or for an average those of its ingredients."""
+    if "soup" not in info.meta:
+        return dict(info.meta, wall_seconds=round(training_wall_seconds(run / "train.log", _validated_line(info.meta))))
+    ingredients = soup_ingredients(run, info.meta["soup"])
+    first = load_model(run / "models" / f"{ingredients[0]['task']}.pth")[1].meta
+    # The average exists once its last-trained ingredient does: the run's time up to that step.
+    seconds = max(training_wall_seconds(run / "train.log", f"validation after {item['task']}") for item in ingredients)
+    return {**{k: first[k] for k in ("schedule", "seed", "config") if k in first},
+            "average": ingredients, "average_command": soup_command(run, ingredients), "wall_seconds": round(seconds)}
 
 
 def _display_path(path: str) -> str:
@@ -101,9 +166,12 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODELS["own"], card: Path | None
     source = run / which
     net, info = load_model(source)  # refuses anything that is not an exact SEKD checkpoint
     config = load_run_config(run / "config.yaml")
-    meta = dict(info.meta, shipped_from=str(run.name), source=which, source_sha256=info.sha256,
-                wall_seconds=round(training_wall_seconds(run / "train.log", _validated_line(info.meta))),
-                command=evolve_command(config, run), data=_display_path(config.images))
+    shown = Path(which).name if Path(which).is_absolute() else which  # an average made outside the run
+    meta = dict(_trained_meta(run, info), shipped_from=str(run.name), source=shown,
+                source_sha256=info.sha256, command=evolve_command(config, run), data=_display_path(config.images))
+    init = starting_model(config.init_weights)
+    if init:
+        meta["init"] = init
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f"{dest.name}.{os.getpid()}.tmp")
@@ -119,7 +187,7 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODELS["own"], card: Path | None
     torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)
     tmp.replace(dest)
     if card is not None:
-        extra = [{"task": f"`{which}` (shipped)", **meta["validation"]}]
+        extra = [{"task": f"`{shown}` (shipped)", **meta["validation"]}]
         if reference:
             extra.append({"task": f"`{Path(reference).name}` (reference)", **validate_net(load_model(reference)[0], config)})
         write_atomic(Path(card), model_card(run, dest, meta, extra))
@@ -207,25 +275,59 @@ def _fork_rows(state: dict) -> list[str]:
              "same settings; the command above reproduces the same model |")]
 
 
+def _chosen_row(meta: dict) -> str:
+    """Which checkpoint of the run was shipped: a step model, or a weighted average of steps."""
+    score = f"validation MMA@3 {meta['validation']['mma3']:.3f}"
+    if "average" in meta:
+        parts = " + ".join(f"{item['weight']:g} x `{item['task']}`" for item in meta["average"])
+        return f"| chosen | `{meta['source']}` = the weighted average {parts} of the run's step models; {score} |"
+    return (f"| chosen | `{meta['source']}` = the model after `{meta['task']}` (round {meta['round']}, step "
+            f"{meta['step']}); {score} |")
+
+
+def _wall_row(meta: dict) -> str:
+    """Training time up to the shipped model; with a shipped starting model, its time added."""
+    hours = meta["wall_seconds"] / 3600
+    text = f"{hours:.2f} h of training on a 2-core CPU (no GPU) up to this model, summed over the resumed runs"
+    earlier = (meta.get("init") or {}).get("wall_seconds")
+    if earlier:
+        text += (f", after {earlier / 3600:.2f} h for its starting model: "
+                 f"{hours + earlier / 3600:.2f} h from random weights")
+    return f"| wall time | {text} |"
+
+
+def _init_rows(init: dict | None) -> list[str]:
+    """Card rows for the model a run started from, and the one that started from, and so on."""
+    rows = []
+    while init:
+        if "sha256" not in init:
+            rows.append(f"| starts from | `{init['file']}` (no longer on disk when this card was written) |")
+            break
+        made = (f": the model shipped from `{init['shipped_from']}` (`{init.get('source', '?')}`), trained by "
+                f"`{init['command']}`" if "shipped_from" in init else "")
+        rows.append(f"| starts from | `{init['file']}`, SHA-256 `{init['sha256']}`{made} |")
+        init = init.get("init")
+    return rows
+
+
 def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> str:
     """Markdown: what, data, schedule, command, wall time, seed, validation per round, checksum."""
     config = meta["config"]
     state = json.loads((run / "state.json").read_text())
     n_params = count_parameters(SEKDNet())
-    hours = meta["wall_seconds"] / 3600
     lines = [
         "# Model card: `own`, the embedded SEKD model trained by this project (`--model own`)",
         "",
         "Generated by `pipelines/train_default/ship.sh` (`python -m sekd_sfm.train.ship`) from the run folder",
-        f"`{run.name}/` of `sekd evolve`; every figure below is read from that run folder.",
+        f"`{run.name}/` of `sekd evolve` (kept out of the repository; the commands below rebuild it); every",
+        "figure below is read from that run folder.",
         "",
         "| | |",
         "|---|---|",
         f"| file | `sekd_sfm/models/{model.name}` ({model.stat().st_size:,} bytes, fp32) |",
         f"| SHA-256 | `{file_sha256(model, 64)}` |",
         f"| network | SEKD (the paper's architecture), {n_params:,} parameters |",
-        (f"| chosen | `{meta['source']}` = the model after `{meta['task']}` (round {meta['round']}, step {meta['step']}); "
-         f"validation MMA@3 {meta['validation']['mma3']:.3f} |"),
+        _chosen_row(meta),
         *([(f"| regression guard | v_graffiti 1-2 mean corner error {meta['graffiti_1_2_corner_error']:.2f} px "
             f"(must stay under {GUARD_PX:g} px) |")] if "graffiti_1_2_corner_error" in meta else []),
         f"| data | `{meta['data']}`: 256 unlabeled COCO photos, no labels of any kind |",
@@ -235,10 +337,12 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
          f"lr {config['lr']} |"),
         f"| seed | {config['seed']} |",
         f"| progress | {_progress(state, config)} |",
-        (f"| wall time | {hours:.2f} h of training on a 2-core CPU (no GPU) up to this model, summed over the "
-         "resumed runs |"),
+        _wall_row(meta),
+        *_init_rows(meta.get("init")),
         f"| command | `{meta['command']}` (resumed with `sekd evolve --resume --out ...`) |",
         *_fork_rows(state),
+        *([f"| average | `{meta['average_command']}` (no training: a weighted mean of the weights) |"]
+          if "average" in meta else []),
         "",
         "## Validation during training",
         "",
@@ -263,8 +367,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="run folder of sekd evolve")
     parser.add_argument("--which", default="best.pth",
-                        help="checkpoint in the run folder (default best.pth), or auto: the best-validated step "
-                             "model that passes the regression guard")
+                        help="checkpoint in the run folder (default best.pth), auto: the best-validated step "
+                             "model that passes the regression guard, or a weight average of the run's step models "
+                             "(python -m sekd_sfm.train.soup)")
     parser.add_argument("--dest", type=Path, default=EMBEDDED_MODELS["own"])
     parser.add_argument("--card", type=Path, default=None, help="write the model card here (Markdown)")
     parser.add_argument("--reference", type=Path, default=None,
