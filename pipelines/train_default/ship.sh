@@ -2,7 +2,8 @@
 # Ship a run's model as the package's embedded default and regenerate its model card.
 # Refused when the checkpoint misses the regression guard (v_graffiti 1-2 within 3 px):
 # pick another with --which models/<task>.pth, or --which auto: the best-validated step that passes.
-# Usage: [RUN=name|path] pipelines/train_default/ship.sh [--which best.pth|auto|models/<task>.pth]
+# Usage: [RUN=name|path] pipelines/train_default/ship.sh [--which best.pth|auto|models/<task>.pth|SOUP.pth]
+# (SOUP.pth: a weight average of the run's step models, python -m sekd_sfm.train.soup)
 # (RUN as for train.sh, default runs/default); then re-run pipelines/paper_benchmarks.sh.
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
