@@ -251,3 +251,11 @@ def test_starting_model_records_the_lineage_of_a_shipped_model(tmp_path):
     assert facts["shipped_from"] == meta["shipped_from"] and facts["command"] == meta["command"]
     assert ship.starting_model("") is None
     assert ship.starting_model(str(tmp_path / "gone.pth")) == {"file": "gone.pth"}
+
+
+def test_wall_time_row_adds_every_shipped_starting_model():
+    chain = {"wall_seconds": 3600, "init": {"wall_seconds": 7200, "sha256": "x", "file": "a.pth"}}
+    assert "after 3.00 h for its starting model(s): 4.50 h from random weights" in ship._wall_row(
+        {"wall_seconds": 5400, "init": chain})
+    # A link whose time is unknown (a checkpoint that was not shipped): no total is claimed.
+    assert "from random weights" not in ship._wall_row({"wall_seconds": 5400, "init": {"sha256": "x", "file": "a.pth"}})

@@ -285,13 +285,23 @@ def _chosen_row(meta: dict) -> str:
             f"{meta['step']}); {score} |")
 
 
+def _lineage_seconds(init: dict | None) -> float | None:
+    """Training seconds of the chain of starting models, or None where a link's time is unknown."""
+    total = 0.0
+    while init:
+        if "wall_seconds" not in init:
+            return None
+        total, init = total + init["wall_seconds"], init.get("init")
+    return total
+
+
 def _wall_row(meta: dict) -> str:
-    """Training time up to the shipped model; with a shipped starting model, its time added."""
+    """Training time up to the shipped model; with shipped starting models, their time added."""
     hours = meta["wall_seconds"] / 3600
     text = f"{hours:.2f} h of training on a 2-core CPU (no GPU) up to this model, summed over the resumed runs"
-    earlier = (meta.get("init") or {}).get("wall_seconds")
+    earlier = _lineage_seconds(meta.get("init")) if meta.get("init") else None
     if earlier:
-        text += (f", after {earlier / 3600:.2f} h for its starting model: "
+        text += (f", after {earlier / 3600:.2f} h for its starting model(s): "
                  f"{hours + earlier / 3600:.2f} h from random weights")
     return f"| wall time | {text} |"
 
