@@ -51,6 +51,8 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
     for name, rate in result["images_per_s"].items():
         gflops = result["gflop_per_s"].get(name)
         click.echo(f"  {name:<18}{rate:7.2f} images/s" + (f"  {gflops:6.1f} GFLOP/s" if gflops else ""))
+    for name, error in result["failed"].items():
+        click.echo(f"  {name:<18} failed, not timed: {error}")
     click.echo(f"  fast/plain {result['fast_vs_plain']:.2f}x   fast/SIFT {result['fast_vs_sift']:.2f}x")
     if "int8_vs_fast_fp32" in result:
         click.echo(f"  int8/fast fp32 {result['int8_vs_fast_fp32']:.2f}x   int8/SIFT {result['int8_vs_sift']:.2f}x")

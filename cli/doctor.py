@@ -23,7 +23,7 @@ def doctor() -> None:
     click.echo(f"{'cpu features':<18}" + " ".join(f"{f}:{'yes' if yes else 'no'}" for f, yes in cpu["features"].items()))
     click.echo(f"{'torch cpu kernels':<18}{cpu['torch_kernels']}")
     click.echo(f"{'threads':<18}{torch.get_num_threads()} intra-op (set with --num-threads)")
-    click.echo(f"{'precision auto':<18}{'bf16 (native bf16 found)' if cpu_has_fast_bf16() else 'fp32'}")
+    click.echo(f"{'precision auto':<18}{_auto_precision_reason()}")
     fused = (f"on: oneDNN fused residual blocks on the CPU; {ENV_SWITCH}=0 turns them off" if fused_forward_available()
              else "off: the eager PyTorch forward")
     click.echo(f"{'fused forward':<18}{ENV_SWITCH}={os.environ.get(ENV_SWITCH, '')!s} ({fused})")
@@ -43,3 +43,14 @@ def _physical_memory() -> int | None:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def _auto_precision_reason() -> str:
+    """What ``--precision auto`` picks here, and why."""
+    if cpu_has_fast_bf16():
+        return "bf16 (native bf16 found)"
+    features = cpu_description()["features"]
+    if features["avx512_bf16"] or features["amx_bf16"]:
+        return (f"fp32 (the CPU has native bf16, but oneDNN may not use it: ONEDNN_MAX_CPU_ISA="
+                f"{os.environ.get('ONEDNN_MAX_CPU_ISA', 'unset')})")
+    return "fp32 (no native bf16)"

@@ -196,11 +196,16 @@ class Int8SEKD:
         if device == "cuda" or (device == "auto" and resolve_device("auto").type == "cuda"):
             raise SekdError("--precision int8 runs on the CPU only; use --device cpu (or --precision fp32 on the GPU)")
         ov = _import_openvino()
-        model, self.cache_path = load_or_build(net)
         threads = num_threads or torch.get_num_threads()
         # LATENCY: one image at a time, all threads on it (as the torch paths run).
         config = {"INFERENCE_NUM_THREADS": threads, "PERFORMANCE_HINT": "LATENCY"}
-        self.compiled = ov.Core().compile_model(model, "CPU", config)
+        try:
+            model, self.cache_path = load_or_build(net)
+            self.compiled = ov.Core().compile_model(model, "CPU", config)
+        except RuntimeError as exc:  # OpenVINO's own errors: a CPU or build it cannot compile the network for
+            first = (str(exc).strip().splitlines() or [""])[0]
+            raise SekdError(f"--precision int8: OpenVINO could not build the quantized network on this CPU "
+                            f"({first}); use --precision auto or fp32") from None
         self.request = self.compiled.create_infer_request()
         self.device = torch.device("cpu")
 

@@ -140,14 +140,20 @@ def cpu_description() -> dict:
 
 
 def cpu_has_fast_bf16() -> bool:
-    """True when the CPU computes bf16 natively (AVX512-BF16 or AMX), where bf16 is ~3x fp32."""
+    """True when the CPU computes bf16 natively (AVX512-BF16 or AMX) and oneDNN may use it.
+
+    The CPU flags alone are not enough: oneDNN can be held below the CPU (``ONEDNN_MAX_CPU_ISA``,
+    set by some containers or to reproduce another machine), and then its bf16 convolutions fall
+    back to reference kernels ~70x slower than fp32 (measured: 543 against 14.6 ms per 3x3
+    convolution at ONEDNN_MAX_CPU_ISA=AVX2 on an AMX CPU).
+    """
     flags = cpu_flags()
-    if "avx512_bf16" in flags or "amx_bf16" in flags:
-        return True
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported()) and "avx512_bf16" in flags
-    except (AttributeError, RuntimeError):
+    if "avx512_bf16" not in flags and "amx_bf16" not in flags:
         return False
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):  # a torch without the query: trust the flags
+        return True
 
 
 def resolve_precision(precision: str, device: torch.device) -> str:

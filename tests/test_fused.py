@@ -216,3 +216,28 @@ def test_bench_speed_reports_the_forward_and_the_fast_paths_agreement(shared, tm
     assert report["fast_forward"] == "fused"
     assert report["agreement_fast_fp32"]["same_pixel"] == 1.0  # the fused fp32 path keeps plain fp32's keypoints
     assert set(report["images_per_s"]) >= {"sekd plain fp32", "sekd fast fp32", "sekd fast auto", "opencv sift"}
+
+
+def test_bench_speed_reports_an_int8_runtime_failure_and_times_the_other_paths(shared, tmp_path, monkeypatch):
+    import json
+
+    from click.testing import CliRunner
+    from sekd_sfm.cli.main import sekd
+
+    from sekd_sfm import int8
+
+    def refuse(*args, **kwargs):  # what OpenVINO raises on a CPU it cannot compile the network for
+        raise RuntimeError("Exception from src/inference/src/cpp/core.cpp:117:\nno primitive for Deconvolution")
+
+    monkeypatch.setattr(int8, "available", lambda: True)
+    monkeypatch.setattr(int8, "_import_openvino", lambda: None)  # with or without the extra installed
+    monkeypatch.setattr(int8, "load_or_build", refuse)
+    out = tmp_path / "speed.json"
+    result = CliRunner().invoke(sekd, ["bench", "speed", "--count", "1", "--repeats", "1", "--height", "64",
+                                       "--width", "96", "--num-threads", "1", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert ("sekd int8          failed, not timed: SekdError: --precision int8: OpenVINO could not build the "
+            "quantized network on this CPU (Exception from src/inference/src/cpp/core.cpp:117:)") in result.output
+    report = json.loads(out.read_text())
+    assert set(report["failed"]) == {"sekd int8", "sekd lite int8"} and "int8_vs_sift" not in report
+    assert {"sekd fast fp32", "sekd lite fp32", "opencv sift"} <= set(report["images_per_s"])

@@ -1,4 +1,6 @@
 """Keypoint selection, sub-pixel refinement and descriptor sampling (docs/method.md)."""
+import os
+
 import cv2
 import numpy as np
 import pytest
@@ -15,7 +17,7 @@ from sekd_sfm.inference import (
     refine_subpixel,
     sample_descriptors,
 )
-from sekd_sfm.runtime import cpu_has_fast_bf16
+from sekd_sfm.runtime import cpu_flags, cpu_has_fast_bf16
 
 
 def test_nms_keeps_local_maxima_above_threshold_by_score():
@@ -126,3 +128,24 @@ def test_multi_scale_maps_keypoints_into_the_image(authors_net):
     assert np.all(out["keypoints"] >= -0.5) and np.all(out["keypoints"] <= [399.5, 299.5])
     assert np.all(np.diff(out["scores"]) <= 0)
     assert np.allclose(np.linalg.norm(out["descriptors"], axis=1), 1, atol=1e-5)
+
+
+def test_auto_precision_needs_bf16_in_the_cpu_flags(monkeypatch):
+    from sekd_sfm import runtime
+
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: frozenset({"avx2", "fma", "avx512f"}))
+    assert not runtime.cpu_has_fast_bf16() and runtime.resolve_precision("auto", torch.device("cpu")) == "fp32"
+
+
+@pytest.mark.skipif(not {"avx512_bf16", "amx_bf16"} & cpu_flags(),
+                    reason="the CPU has no native bf16")
+def test_auto_precision_is_fp32_where_onednn_is_held_below_the_cpus_bf16():
+    """ONEDNN_MAX_CPU_ISA=AVX2 makes bf16 convolutions ~70x slower than fp32: auto must not pick bf16 then."""
+    import subprocess
+    import sys
+
+    code = "import torch; from sekd_sfm.runtime import resolve_precision; print(resolve_precision('auto', torch.device('cpu')))"
+    for isa, expected in (("AVX2", "fp32"), ("ALL", "bf16")):
+        out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "ONEDNN_MAX_CPU_ISA": isa},
+                             capture_output=True, text=True, check=True).stdout.strip()
+        assert out == expected, (isa, out)
