@@ -9,7 +9,12 @@ import torch
 from sekd_sfm.failures import DEBUG_VARIABLE, debug_enabled
 from sekd_sfm.fused import ENV_SWITCH, fused_forward_available
 from sekd_sfm.images import DEFAULT_MAX_PIXELS
-from sekd_sfm.runtime import cpu_description, cpu_has_fast_bf16, package_versions
+from sekd_sfm.runtime import (
+    cpu_description,
+    cpu_has_fast_bf16,
+    cpu_reports_bf16,
+    package_versions,
+)
 from sekd_sfm.weights import EMBEDDED_MODEL, file_sha256
 
 
@@ -49,8 +54,7 @@ def _auto_precision_reason() -> str:
     """What ``--precision auto`` picks here, and why."""
     if cpu_has_fast_bf16():
         return "bf16 (native bf16 found)"
-    features = cpu_description()["features"]
-    if features["avx512_bf16"] or features["amx_bf16"]:
+    if cpu_reports_bf16():
         return (f"fp32 (the CPU has native bf16, but oneDNN may not use it: ONEDNN_MAX_CPU_ISA="
                 f"{os.environ.get('ONEDNN_MAX_CPU_ISA', 'unset')})")
     return "fp32 (no native bf16)"

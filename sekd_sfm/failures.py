@@ -38,10 +38,10 @@ def explain(exc: BaseException, inputs: Iterable[str] = ()) -> str:
         return ("out of memory; lower --resize-max or --max-pixels, use fewer --max-keypoints or --num-threads, "
                 "or close other programs, then " + _RESUME)
     if _from_module(exc, "h5py") or isinstance(exc, OSError) and "file signature" in str(exc):
-        return f"{_hdf5_files(inputs)}: damaged or not the expected kind of HDF5 file ({_first_line(exc)})"
+        return f"{_hdf5_files(inputs)}: damaged or not the expected kind of HDF5 file ({first_line(exc)})"
     if isinstance(exc, pickle.UnpicklingError) or _is_bad_checkpoint(exc):
-        return f"cannot load a model checkpoint: not a valid PyTorch weights file ({_first_line(exc)})"
-    return (f"unexpected {type(exc).__name__}: {_first_line(exc)} "
+        return f"cannot load a model checkpoint: not a valid PyTorch weights file ({first_line(exc)})"
+    return (f"unexpected {type(exc).__name__}: {first_line(exc)} "
             f"(set {DEBUG_VARIABLE}=1 to see the traceback, and please report it)")
 
 
@@ -82,7 +82,7 @@ def _os_error(exc: OSError, output: str | None = None) -> str:
         return f"{path}: too many open files; raise the limit (ulimit -n) and {_RESUME}"
     if code == errno.ENOMEM:
         return "out of memory; lower --resize-max or --max-pixels, or close other programs, then " + _RESUME
-    reason = exc.strerror or _first_line(exc)
+    reason = exc.strerror or first_line(exc)
     return f"{path}: {reason}" + (f" (and {exc.filename2})" if exc.filename2 else "")
 
 
@@ -130,7 +130,8 @@ def _hdf5_files(inputs: Iterable[str]) -> str:
     return ", ".join(files) if files else "an HDF5 input"
 
 
-def _first_line(exc: BaseException) -> str:
+def first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (its type name when empty), at most 300 characters."""
     text = str(exc).strip()
     if isinstance(exc, KeyError) and text.startswith(("'", '"')):
         text = text[1:-1]

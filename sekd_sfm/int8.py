@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from .errors import SekdError
+from .failures import first_line
 from .network import STRIDE, SEKDNet
 
 INSTALL_HINT = 'pip install "sekd-sfm[int8]"'
@@ -203,9 +204,8 @@ class Int8SEKD:
             model, self.cache_path = load_or_build(net)
             self.compiled = ov.Core().compile_model(model, "CPU", config)
         except RuntimeError as exc:  # OpenVINO's own errors: a CPU or build it cannot compile the network for
-            first = (str(exc).strip().splitlines() or [""])[0]
             raise SekdError(f"--precision int8: OpenVINO could not build the quantized network on this CPU "
-                            f"({first}); use --precision auto or fp32") from None
+                            f"({first_line(exc)}); use --precision auto or fp32") from None
         self.request = self.compiled.create_infer_request()
         self.device = torch.device("cpu")
 

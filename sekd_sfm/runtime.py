@@ -139,6 +139,12 @@ def cpu_description() -> dict:
             "torch_kernels": torch.backends.cpu.get_cpu_capability(), "cores": os.cpu_count()}
 
 
+def cpu_reports_bf16() -> bool:
+    """True when the CPU's flags name a native bf16 unit (AVX512-BF16 or AMX), whether or not it is usable."""
+    flags = cpu_flags()
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
 def cpu_has_fast_bf16() -> bool:
     """True when the CPU computes bf16 natively (AVX512-BF16 or AMX) and oneDNN may use it.
 
@@ -147,8 +153,7 @@ def cpu_has_fast_bf16() -> bool:
     back to reference kernels ~70x slower than fp32 (measured: 543 against 14.6 ms per 3x3
     convolution at ONEDNN_MAX_CPU_ISA=AVX2 on an AMX CPU).
     """
-    flags = cpu_flags()
-    if "avx512_bf16" not in flags and "amx_bf16" not in flags:
+    if not cpu_reports_bf16():
         return False
     try:
         return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())

@@ -133,6 +133,7 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
         "opencv sift": lambda: SiftExtractor(max_keypoints),
     }
     from .. import int8
+    from ..failures import first_line
     if int8.available():  # optional extra; its one-time calibration runs before timing (cached per weights)
         factories["sekd int8"] = lambda: SEKDExtractor(net, SEKDConfig(**{**config.as_dict(), "precision": "int8"}))
     if lite is not None:
@@ -151,7 +152,7 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
                 raise
             # The optional int8 runtime (OpenVINO) can refuse a CPU or a build it does not
             # support; the other paths' figures still stand, and the report says why int8 has none.
-            failed[name] = f"{type(exc).__name__}: {(str(exc).strip().splitlines() or [''])[0]}"
+            failed[name] = f"{type(exc).__name__}: {first_line(exc)}"
     fast = "sekd fast auto"
     extra = {}
     if "sekd int8" in rates:
