@@ -25,9 +25,15 @@ from sekd_sfm.weights import DEFAULT_MODEL
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None, help="Peak learning rate (default 3e-3).")
 @click.option("--channels", type=(int, int, int), default=None, metavar="C0 C1 C2",
               help="Student channels at full, 1/2 and 1/4 resolution, multiples of 8 (default 16 32 64).")
+@click.option("--blocks", type=(int, int, int), default=None, metavar="B0 B1 B2",
+              help="Student residual blocks at full, 1/2 and 1/4 resolution (full resolution may have 0; "
+                   "default 1 1 1).")
+@click.option("--context-dilations", default=None, metavar="D,...",
+              help="One more dilated residual block at 1/4 resolution per entry, comma-separated "
+                   "dilations (default 2,4: a descriptor sees ~60 px).")
 @click.option("--init", default=None, metavar="lite|PATH",
               help="Start from this SEKD-Lite (the embedded one, or a checkpoint) instead of a random student; "
-                   "its channels are kept. Default: random initialisation.")
+                   "its architecture is kept. Default: random initialisation.")
 @click.option("--train-precision", type=click.Choice(TRAIN_PRECISIONS), default=None,
               help="Student training precision: bf16 = mixed precision, faster on CPUs with native bf16 "
                    "(auto: bf16 there only). Default: fp32.")
@@ -42,7 +48,7 @@ from sekd_sfm.weights import DEFAULT_MODEL
               help="CPU threads (0: all cores).")
 @click.option("--resume", is_flag=True, help="Continue the interrupted run in OUTPUT with its recorded settings.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
-def distill(output, teacher, photos, steps, batch_size, crop, lr, channels, init, train_precision, pair_weight,
+def distill(output, teacher, photos, steps, batch_size, crop, lr, channels, blocks, context_dilations, init, train_precision, pair_weight,
             val_every, seed, num_threads, resume, no_progress) -> None:
     """Train a SEKD-Lite network to reproduce a full SEKD model's outputs.
 
@@ -69,16 +75,31 @@ def distill(output, teacher, photos, steps, batch_size, crop, lr, channels, init
     given = {"teacher": teacher, "photos": str(photos) if photos else None, "steps": steps, "batch_size": batch_size,
              "crop": list(crop) if crop else None, "lr": lr, "val_every": val_every, "seed": seed, "init": init,
              "train_precision": train_precision, "pair_weight": pair_weight,
-             "student": {"channels": list(channels)} if channels else None}
+             "student": _student_config(channels, blocks, context_dilations)}
     given = {k: v for k, v in given.items() if v is not None}
     if resume and given:
         raise SekdError(f"--resume continues {output} with its recorded settings; drop "
                         + ", ".join("--" + k.replace("_", "-") for k in given))
-    if init and channels:
-        raise SekdError("--init keeps the checkpoint's channels; drop --channels")
+    if init and given.get("student"):
+        raise SekdError("--init keeps the checkpoint's architecture; drop --channels, --blocks and --context-dilations")
     config = None
     if not resume:
         config = DistillConfig()
         for key, value in given.items():
             setattr(config, key, {**config.student, **value} if key == "student" else value)
     click.echo(str(run_distill(output, config, resume=resume, num_threads=num_threads, progress=not no_progress)))
+
+
+def _student_config(channels, blocks, context_dilations: str | None) -> dict | None:
+    """The student architecture settings given on the command line (None: none given)."""
+    config = {}
+    if channels:
+        config["channels"] = list(channels)
+    if blocks:
+        config["blocks"] = list(blocks)
+    if context_dilations is not None:
+        try:
+            config["context_dilations"] = [int(d) for d in context_dilations.split(",") if d.strip()]
+        except ValueError:
+            raise SekdError(f"--context-dilations takes comma-separated integers such as 2,4; got {context_dilations!r}") from None
+    return config or None

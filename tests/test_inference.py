@@ -65,6 +65,21 @@ def test_descriptor_sampling_convention():
     desc = sample_descriptors(raw, torch.tensor([[4.0, 4.0]]), 8, 8)
     assert torch.allclose(desc, torch.tensor([[0.5, 1.0]]) / np.hypot(0.5, 1.0))
     assert sample_descriptors(raw, torch.zeros(0, 2), 8, 8).shape == (0, 2)
+    # The channels-last map (the fast path's layout) is read as rows: same numbers.
+    rows = raw[None].contiguous(memory_format=torch.channels_last)[0]
+    assert rows.stride(0) == 1
+    assert torch.allclose(sample_descriptors(rows, torch.tensor([[4.0, 4.0]]), 8, 8), desc)
+    assert sample_descriptors(rows, torch.zeros(0, 2), 8, 8).shape == (0, 2)
+
+
+def test_descriptor_sampling_of_both_layouts_agrees_at_borders():
+    # Keypoints on every border and corner, where bilinear sampling pads with zeros.
+    raw = torch.randn(1, 16, 6, 10, generator=torch.Generator().manual_seed(0))
+    xy = torch.tensor([[0.0, 0.0], [39.0, 23.0], [0.0, 23.0], [39.0, 0.0], [1.5, 2.0], [20.3, 11.7], [38.6, 0.4]])
+    reference = sample_descriptors(raw[0], xy, 24, 40)  # grid_sample on the plain map
+    rows = sample_descriptors(raw.contiguous(memory_format=torch.channels_last)[0], xy, 24, 40)
+    assert torch.allclose(rows, reference, atol=1e-6)
+    assert torch.allclose(rows.norm(dim=1), torch.ones(len(xy)))
 
 
 def test_pyramid_levels_stop_at_128_pixels():

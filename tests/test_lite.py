@@ -319,7 +319,10 @@ def test_distill_with_the_matching_term_trains_on_view_pairs(tmp_path, tiny_phot
 @pytest.mark.parametrize("args, message", [
     (["--resume"], "no distillation to resume"),
     (["--init", "authors"], "is a full SEKD network .* checkpoint, but a SEKD-Lite"),
-    (["--init", "lite", "--channels", "8", "16", "32"], "--init keeps the checkpoint's channels; drop --channels"),
+    (["--init", "lite", "--channels", "8", "16", "32"], "--init keeps the checkpoint's architecture; drop --channels"),
+    (["--init", "lite", "--blocks", "0", "1", "1"], "--init keeps the checkpoint's architecture"),
+    (["--context-dilations", "2,x"], "--context-dilations takes comma-separated integers such as 2,4; got '2,x'"),
+    (["--blocks", "1", "0", "1"], "invalid student configuration .* blocks must be >= 0 at full resolution and >= 1 below"),
     (["--resume", "--steps", "5"], "--resume continues .* with its recorded settings; drop --steps"),
     (["--photos", "{tmp}/nowhere"], "nowhere: photo folder not found"),
     (["--crop", "30", "48"], "--crop must be HEIGHT WIDTH, multiples of 4"),
