@@ -24,10 +24,10 @@ from sekd_sfm.weights import DEFAULT_MODEL
               help="Crop size in pixels, multiples of 4 (default 192 256).")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None, help="Peak learning rate (default 3e-3).")
 @click.option("--channels", type=(int, int, int), default=None, metavar="C0 C1 C2",
-              help="Student channels at full, 1/2 and 1/4 resolution, multiples of 8 (default 16 32 64).")
+              help="Student channels at full, 1/2 and 1/4 resolution, multiples of 8 (default 8 24 48).")
 @click.option("--blocks", type=(int, int, int), default=None, metavar="B0 B1 B2",
               help="Student residual blocks at full, 1/2 and 1/4 resolution (full resolution may have 0; "
-                   "default 1 1 1).")
+                   "default 0 1 1).")
 @click.option("--context-dilations", default=None, metavar="D,...",
               help="One more dilated residual block at 1/4 resolution per entry, comma-separated "
                    "dilations (default 2,4: a descriptor sees ~60 px).")
@@ -68,7 +68,7 @@ def distill(output, teacher, photos, steps, batch_size, crop, lr, channels, bloc
       sekd distill -o runs/lite                                   # shared COCO photos, 3000 steps
       sekd distill -o runs/lite --steps 6000 --num-threads 2
       sekd distill -o runs/lite --resume                          # after Ctrl-C or a crash
-      sekd distill -o runs/lite2 --init runs/lite/student.pth --lr 1e-3 --steps 2000 \
+      sekd distill -o runs/lite2 --init runs/lite/student.pth --lr 1e-3 --steps 3000 \
           --pair-weight 3 --train-precision auto    # stage 2 of the shipped Lite: learn to match
       sekd extract photos/ -o features.h5 --weights runs/lite/student.pth
     """

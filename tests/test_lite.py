@@ -43,8 +43,9 @@ def _one_error_line(result) -> str:
 
 def test_lite_has_the_expected_parameter_count_and_outputs():
     net = SEKDLiteNet().eval()
-    assert sum(p.numel() for p in net.parameters()) == 114_274  # vs 661,762 for SEKDNet
-    assert net.config == {"channels": [16, 32, 64], "blocks": [1, 1, 1], "context_dilations": [2, 4], "stem_kernel": 3}
+    assert sum(p.numel() for p in net.parameters()) == 63_618  # vs 661,762 for SEKDNet
+    assert net.config == {"channels": [8, 24, 48], "blocks": [0, 1, 1], "context_dilations": [2, 4], "stem_kernel": 3}
+    assert isinstance(net.resblock0, torch.nn.Identity)  # no residual block at full resolution
     assert net.resblock2[2].convb[2].dilation == (4, 4)
     with torch.no_grad():
         prob, desc = net(torch.rand(2, 1, 32, 48))
@@ -99,7 +100,7 @@ def test_full_checkpoint_is_refused_where_lite_is_required_and_mislabelled_files
 
 def test_embedded_lite_loads_with_its_card_checksum():
     net, info = load_model(LITE)
-    assert isinstance(net, SEKDLiteNet) and sum(p.numel() for p in net.parameters()) == 114_274
+    assert isinstance(net, SEKDLiteNet) and sum(p.numel() for p in net.parameters()) == 63_618
     assert LITE.stat().st_size < 500_000
     assert info.meta["architecture"] == "sekd-lite" and info.meta["teacher"] == "sekd_authors.pth"
     card = (ROOT / "docs/model_card_lite.md").read_text()
@@ -122,13 +123,13 @@ def test_embedded_lite_agrees_with_its_reference_and_its_teacher_on_the_golden_c
     assert (prob16 - prob[:, 0]).abs().max() < 0.1
     assert torch.nn.functional.cosine_similarity(desc16, desc, dim=1).median() > 0.99
     # Against the teacher's outputs (the authors' model): a distilled copy, not an identical one.
-    # Measured when shipping: descriptor cosine median 0.547 over the 32 x 40 cells, mean |dp| 0.0085
-    # (the teacher's probabilities span 0.2-0.67); an untrained Lite gives cosine ~0 here. (The
-    # matching term of its second distillation traded closeness to the teacher, 0.583 before, for
-    # matching across viewpoints.)
+    # Measured when shipping version 3: descriptor cosine median 0.409 over the 32 x 40 cells, mean
+    # |dp| 0.0116 (the teacher's probabilities span 0.2-0.67); an untrained Lite gives cosine ~0 here.
+    # (Version 2, twice the channels: 0.547. The matching term of the second distillation trades
+    # closeness to the teacher for matching across viewpoints.)
     teacher_prob = torch.from_numpy(golden["location"])
     cosine = torch.nn.functional.cosine_similarity(desc, torch.from_numpy(golden["descriptor"]), dim=1)
-    assert cosine.median() > 0.5
+    assert cosine.median() > 0.35
     assert (prob - teacher_prob).abs().mean() < 0.02
 
 
@@ -220,16 +221,16 @@ def test_distill_resume_continues_exactly_where_it_stopped(tmp_path, tiny_photos
 
 def test_distill_init_starts_from_the_given_lite_and_keeps_its_channels(tmp_path, tiny_photos):
     source = distill(tmp_path / "a", DistillConfig(**{**asdict(_tiny_config(tiny_photos, 1)),
-                                                      "student": {"channels": [8, 16, 32]}}), progress=False)
+                                                      "student": {"channels": [16, 16, 32]}}), progress=False)
     config = DistillConfig(**{**asdict(_tiny_config(tiny_photos, 1)), "init": str(source), "lr": 1e-12,
                               "warmup_steps": 1, "lr_min": 1e-12})
     student = distill(tmp_path / "b", config, progress=False)
     start, after = (torch.load(p, weights_only=True)["state_dict"] for p in (source, student))
-    assert start["conv0.weight"].shape[0] == 8   # the checkpoint's channels, not the default 16
+    assert start["conv0.weight"].shape[0] == 16   # the checkpoint's channels, not the default 8
     # One step at a learning rate of 1e-12 leaves the weights where --init put them.
     assert all(torch.allclose(start[k].float(), after[k].float(), atol=1e-6) for k in start if "weight" in k)
     recorded = json.loads((tmp_path / "b" / "config.json").read_text())
-    assert recorded["init_sha256"] == file_sha256(source) and recorded["config"]["student"]["channels"] == [8, 16, 32]
+    assert recorded["init_sha256"] == file_sha256(source) and recorded["config"]["student"]["channels"] == [16, 16, 32]
     assert load_model(student)[1].meta["init_sha256"] == file_sha256(source)  # the lineage travels with the model
     # A resumed run continues from its own state: the --init file is no longer needed.
     source.unlink()
