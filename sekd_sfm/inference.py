@@ -142,7 +142,7 @@ def sample_descriptors(raw: torch.Tensor, xy: torch.Tensor, height: int, width: 
     channels, h, w = raw.shape
     if xy.shape[0] == 0:
         return raw.new_zeros(0, channels)
-    if raw.stride(0) != 1 or channels == 1:
+    if raw.stride(0) != 1:  # a contiguous (channels-first) map: grid_sample reads it in place
         grid = torch.stack([2 * xy[:, 0] / width - 1, 2 * xy[:, 1] / height - 1], dim=1).to(raw)
         desc = F.grid_sample(raw[None], grid[None, None], mode="bilinear", align_corners=False)[0, :, 0]
         return F.normalize(desc, p=2, dim=0).t().contiguous()
