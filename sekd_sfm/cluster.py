@@ -74,7 +74,9 @@ class RayOptions:
     many as the cluster's CPUs or GPUs hold). ``images_per_task``: images per extraction
     task, the unit of retry after a worker dies and of the driver's cost (a few ms of its
     CPU per task); None = ``task_size(4, workers)``. Matching tasks are ``task_size(1,
-    workers)`` of the local run's pair batches.
+    workers)`` of the local run's pair batches. ``driver_helps``: whether the driver extracts
+    images itself while the workers start (``_DriverHelper``); None = only when its machine has
+    cores no Ray node on it was given (``_driver_should_help``).
     """
 
     address: str = "auto"
@@ -83,7 +85,7 @@ class RayOptions:
     workers: int | None = None
     images_per_task: int | None = None
     merge: str = "copy"
-    driver_helps: bool = True
+    driver_helps: bool | None = None
 
 
 #: How extracted features reach ``features.h5``: ``copy`` = the arrays are copied in (one
@@ -347,6 +349,8 @@ def _read_claims(path: Path | None) -> set[str]:
 class _DriverHelper:
     """The driver extracts images itself, from the end of the list, while the Ray workers start.
 
+    Used only on cores no Ray node was given (``_driver_should_help``).
+
     A worker needs seconds to start (a process, Ray, torch, the model) while the driver holds
     a built extractor and idles; on a run of a few hundred images that start-up is a large
     part of the time. Before each image the driver adds its key to a claims file (replaced
@@ -480,14 +484,6 @@ def _stream(ray, items: list[dict], worker, args: tuple, base: int, options: Ray
     return dataset.iter_batches(batch_size=None, batch_format="numpy")
 
 
-def _connected_stream(session: dict, items: list[dict], worker, args: tuple, base: int,
-                      options: RayOptions) -> Iterator[dict]:
-    """``_stream`` that connects to the cluster at its first ``next()``; ``session`` gets ``ray`` and
-    ``owned`` (``_connect``) then, for the caller's disconnect."""
-    session["ray"], session["owned"] = _connect(options)
-    yield from _stream(session["ray"], items, worker, args, base, options)
-
-
 def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
            on_error: Callable[[str, str], None], write_group, progress: bool, folder: Path | None = None,
            shard_meta: dict[str, dict] | None = None, helper: _DriverHelper | None = None) -> None:
@@ -582,6 +578,39 @@ def _claims_path(output: Path) -> Path:
     return output.with_name(f"{output.name}.claims-{uuid.uuid4().hex[:8]}.{os.getpid()}.tmp")
 
 
+def _host_cores() -> int:
+    """CPU cores this process may run on (its affinity mask: a container's or ``taskset``'s share)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def _free_cores_here(ray) -> float:
+    """Cores of the driver's machine that no live Ray node on it was given (by ``ray start --num-cpus``).
+
+    Ray nodes on the driver's machine are those at the driver's node IP address (several raylets
+    on one host share it; inside a network namespace all of them are 127.0.0.1).
+    """
+    here = ray.util.get_node_ip_address()
+    given = sum(node.get("Resources", {}).get("CPU", 0.0) for node in ray.nodes()
+                if node.get("Alive") and node.get("NodeManagerAddress") == here)
+    return _host_cores() - given
+
+
+def _driver_should_help(ray, options: RayOptions, extractor) -> bool:
+    """Whether the driver extracts images itself while the workers start (``_DriverHelper``).
+
+    Only where it takes no core from a worker: CPU workers, and (by default) at least a
+    worker's threads of cores on the driver's machine that Ray was not given. Where Ray holds
+    every core of the driver's machine (a one-machine cluster), the driver's extraction slows
+    the workers' start-up more than it adds: docs/cluster.md, run L.
+    """
+    if options.gpus_per_worker or not _on_cpu(extractor) or options.driver_helps is False:
+        return False
+    return options.driver_helps is True or _free_cores_here(ray) >= options.threads_per_worker
+
+
 def _on_cpu(extractor) -> bool:
     """Whether ``extractor`` runs on the CPU (the driver's helper must compute exactly what CPU workers do)."""
     device = getattr(getattr(extractor, "model", None), "device", None) or getattr(extractor, "device", "cpu")
@@ -615,9 +644,6 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
         tqdm.write(f"warning: {error}; skipped")
 
     claims = _claims_path(output)
-    helper = None
-    if options.driver_helps and not options.gpus_per_worker and _on_cpu(extractor):
-        helper = _DriverHelper(Path(image_dir), todo, extractor, config, parts, claims, options.threads_per_worker)
     import torch
 
     from .runtime import set_num_threads
@@ -625,11 +651,13 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
     threads = torch.get_num_threads()  # the helper switches to the workers' count; restored below
     session: dict = {}
     try:
+        session["ray"], session["owned"] = _connect(options)
+        helper = None
+        if _driver_should_help(session["ray"], options, extractor):
+            helper = _DriverHelper(Path(image_dir), todo, extractor, config, parts, claims, options.threads_per_worker)
         args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker,
                 str(Path(output).resolve()), options.merge, str(claims.resolve()) if helper else "")
-        # ray.init happens inside the drain, after the driver's helper has started extracting, so the
-        # driver extracts while it connects (docs/cluster.md, run H: no measurable change on 2 cores).
-        results = _connected_stream(session, [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
+        results = _stream(session["ray"], [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
         folder = shards.shard_root(output) if options.merge == "virtual" else None
         shard_meta: dict[str, dict] = {}
         try:

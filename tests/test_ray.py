@@ -152,6 +152,28 @@ def _assert_keys_only(log: str, unit: str) -> None:
     assert received and int(received[-1]) < 500, log[-2000:]
 
 
+def test_driver_helping_gives_the_same_file(cluster, local_run, tmp_path):
+    """The driver's own extraction while workers start (forced on: this cluster holds every core) changes nothing."""
+    images, features, _, _ = local_run
+    ns, address = cluster
+    out = tmp_path / "features.h5"
+    script = ("import logging, sys\n"
+              "logging.basicConfig(level=logging.INFO, format='%(message)s')\n"
+              "from sekd_sfm.cluster import RayOptions\n"
+              "from sekd_sfm.extract import extract_features\n"
+              "from sekd_sfm.features import FeatureConfig\n"
+              "extract_features(sys.argv[1], sys.argv[2], FeatureConfig(resize_max=160, max_keypoints=300), "
+              "progress=False, executor='ray', ray_options=RayOptions(address=sys.argv[3], driver_helps=True))\n")
+    run = subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-c", script, str(images), str(out), address],
+                         check=False, capture_output=True, text=True, timeout=180)
+    assert run.returncode == 0, run.stderr[-3000:]
+    helped = re.findall(r"the driver extracted (\d+) of the 6 images itself", run.stderr)  # 5 photos + broken.jpg
+    assert helped and 1 <= int(helped[-1]) <= 3, run.stderr[-2000:]  # from the end of the list, never over half
+    assert _contents(out) == _contents(features)
+    assert _attrs(out) == _attrs(features)
+    assert not list(tmp_path.glob("*.claims-*"))  # the run's claims file is gone
+
+
 def test_match_on_ray_identical_to_local(cluster, local_run, tmp_path):
     _, features, pairs, matches = local_run
     out = tmp_path / "matches.h5"
@@ -432,6 +454,36 @@ def test_worker_skips_the_images_the_driver_claimed(local_run, tmp_path):
     assert sorted(by_key) == keys and not any(back["error"])
     assert [k for k, c in by_key.items() if c == BY_DRIVER] == sorted(keys[-2:])  # counted by the driver, not here
     assert claims.name.startswith("features.h5.claims-") and claims.name.endswith(f".{os.getpid()}.tmp")
+
+
+class _FakeNodes:
+    """The two calls ``cluster._free_cores_here`` makes of Ray: the driver's IP and the node table."""
+
+    def __init__(self, here: str, nodes: list[tuple[str, float, bool]]):
+        self.util = type("util", (), {"get_node_ip_address": staticmethod(lambda: here)})
+        self.table = [{"NodeManagerAddress": ip, "Resources": {"CPU": cpus}, "Alive": alive} for ip, cpus, alive in nodes]
+
+    def nodes(self):
+        return self.table
+
+
+@pytest.mark.parametrize(("nodes", "options", "helps"), [
+    ([("127.0.0.1", 1.0, True), ("127.0.0.1", 1.0, True)], {}, False),  # a one-machine cluster holds both cores
+    ([("127.0.0.1", 1.0, True)], {}, True),  # one core left to the driver
+    ([("127.0.0.1", 1.0, True)], {"threads_per_worker": 2}, False),  # not a worker's worth
+    ([("10.0.0.5", 8.0, True)], {}, True),  # the driver's machine runs no Ray node (a login node)
+    ([("127.0.0.1", 2.0, False), ("10.0.0.5", 8.0, True)], {}, True),  # a dead node here holds nothing
+    ([("127.0.0.1", 2.0, True)], {"driver_helps": True}, True),  # forced
+    ([("10.0.0.5", 8.0, True)], {"driver_helps": False}, False),  # off
+    ([("10.0.0.5", 8.0, True)], {"gpus_per_worker": 1.0}, False),  # GPU workers compute otherwise
+])
+def test_driver_helps_only_with_cores_ray_does_not_hold(monkeypatch, nodes, options, helps):
+    from sekd_sfm import cluster
+
+    monkeypatch.setattr(cluster, "_host_cores", lambda: 2)
+    cpu_extractor = type("extractor", (), {"device": "cpu"})()
+    assert cluster._driver_should_help(_FakeNodes("127.0.0.1", nodes), cluster.RayOptions(**options),
+                                       cpu_extractor) is helps
 
 
 def test_ray_data_usage_statistics_are_off_unless_the_user_chose(monkeypatch):
