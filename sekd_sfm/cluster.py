@@ -578,14 +578,6 @@ def _claims_path(output: Path) -> Path:
     return output.with_name(f"{output.name}.claims-{uuid.uuid4().hex[:8]}.{os.getpid()}.tmp")
 
 
-def _host_cores() -> int:
-    """CPU cores this process may run on (its affinity mask: a container's or ``taskset``'s share)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
 def _free_cores_here(ray) -> float:
     """Cores of the driver's machine that no live Ray node on it was given (by ``ray start --num-cpus``).
 
@@ -595,7 +587,9 @@ def _free_cores_here(ray) -> float:
     here = ray.util.get_node_ip_address()
     given = sum(node.get("Resources", {}).get("CPU", 0.0) for node in ray.nodes()
                 if node.get("Alive") and node.get("NodeManagerAddress") == here)
-    return _host_cores() - given
+    from .runtime import usable_cores
+
+    return usable_cores() - given
 
 
 def _driver_should_help(ray, options: RayOptions, extractor) -> bool:
@@ -649,15 +643,14 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
     from .runtime import set_num_threads
 
     threads = torch.get_num_threads()  # the helper switches to the workers' count; restored below
-    session: dict = {}
+    ray, owned = _connect(options)
     try:
-        session["ray"], session["owned"] = _connect(options)
         helper = None
-        if _driver_should_help(session["ray"], options, extractor):
+        if _driver_should_help(ray, options, extractor):
             helper = _DriverHelper(Path(image_dir), todo, extractor, config, parts, claims, options.threads_per_worker)
         args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker,
                 str(Path(output).resolve()), options.merge, str(claims.resolve()) if helper else "")
-        results = _stream(session["ray"], [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
+        results = _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
         folder = shards.shard_root(output) if options.merge == "virtual" else None
         shard_meta: dict[str, dict] = {}
         try:
@@ -669,8 +662,8 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
     finally:
         claims.unlink(missing_ok=True)
         set_num_threads(threads)
-        if session.get("owned"):
-            session["ray"].shutdown()
+        if owned:
+            ray.shutdown()
     order = {key: i for i, key in enumerate(todo)}
     return sorted(failed, key=order.__getitem__)  # the order of a local run, whatever order tasks finished in
 

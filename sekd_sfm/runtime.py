@@ -82,12 +82,17 @@ def shared_dir() -> Path:
     return beside_checkout if beside_checkout.is_dir() else Path("../shared")
 
 
+def usable_cores() -> int:
+    """CPU cores this process may run on: its affinity mask (a container's or ``taskset``'s share), else all."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def set_num_threads(num_threads: int | None) -> int:
     """Use ``num_threads`` intra-op threads (None or 0: one per available core); SekdError if negative."""
     if num_threads is not None and int(num_threads) < 0:
         raise SekdError(f"--num-threads must be a positive number of CPU threads, got {num_threads}")
     if not num_threads:
-        num_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        num_threads = usable_cores()
     torch.set_num_threads(int(num_threads))
     return torch.get_num_threads()
 

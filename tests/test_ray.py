@@ -480,7 +480,7 @@ class _FakeNodes:
 def test_driver_helps_only_with_cores_ray_does_not_hold(monkeypatch, nodes, options, helps):
     from sekd_sfm import cluster
 
-    monkeypatch.setattr(cluster, "_host_cores", lambda: 2)
+    monkeypatch.setattr("sekd_sfm.runtime.usable_cores", lambda: 2)
     cpu_extractor = type("extractor", (), {"device": "cpu"})()
     assert cluster._driver_should_help(_FakeNodes("127.0.0.1", nodes), cluster.RayOptions(**options),
                                        cpu_extractor) is helps

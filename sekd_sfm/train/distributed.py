@@ -13,7 +13,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from ..runtime import resolve_device
+from ..runtime import resolve_device, usable_cores
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,7 @@ def setup(device: str = "auto", num_threads: int = 0) -> Context:
         torch.cuda.set_device(chosen)
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if chosen.type == "cuda" else "gloo")
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    cores = usable_cores()
     # Processes share the cores: each gets its slice unless the config fixes the count.
     torch.set_num_threads(num_threads or max(1, cores // world))
     return Context(rank, world, chosen)
