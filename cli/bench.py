@@ -11,7 +11,7 @@ from sekd_sfm.bench.speed import benchmark_speed
 from sekd_sfm.runtime import PRECISIONS, shared_dir
 from sekd_sfm.weights import load_model
 
-from .options import weights_option
+from .options import num_threads_option, weights_option
 
 
 @click.group()
@@ -27,7 +27,7 @@ def bench() -> None:
 @click.option("--height", type=click.IntRange(min=16), default=480, show_default=True)
 @click.option("--width", type=click.IntRange(min=16), default=640, show_default=True)
 @click.option("--max-keypoints", type=click.IntRange(min=1), default=2000, show_default=True)
-@click.option("--num-threads", type=click.IntRange(min=1), default=None, help="CPU threads (default: all cores).")
+@num_threads_option
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the results as JSON.")
 @weights_option
 def speed(images, count, repeats, height, width, max_keypoints, num_threads, output, weights) -> None:
@@ -87,8 +87,9 @@ def speed(images, count, repeats, height, width, max_keypoints, num_threads, out
 @click.option("--ransac-runs", type=click.IntRange(min=1), default=50, show_default=True,
               help="RANSAC runs per pair: the first on the matches in order (the paper's Avg.HA), the others on "
                    "shuffled orders; the table adds their mean ± sd, which ranks methods closer than one run can.")
+@num_threads_option
 @weights_option
-def homography(roots, methods, output, resize_max, max_keypoints, precision, ransac_runs, weights) -> None:
+def homography(roots, methods, output, resize_max, max_keypoints, precision, ransac_runs, num_threads, weights) -> None:
     """Homography estimation (the paper's Table 2 / Fig. 4) on HPatches-layout sequences.
 
     \b
@@ -103,7 +104,7 @@ def homography(roots, methods, output, resize_max, max_keypoints, precision, ran
     roots = list(roots) or [shared_dir() / "data/homography/hpatches", shared_dir() / "data/homography/oxford"]
     specs = method_specs(methods, weights)
     config = HomographyConfig(resize_max=resize_max or None, max_keypoints=max_keypoints, precision=precision,
-                              ransac_runs=ransac_runs)
+                              ransac_runs=ransac_runs, num_threads=num_threads)
     path = run_homography_benchmark(roots, [parse_method(m) for m in specs], output, config)
     click.echo((path.parent / "results.md").read_text())
     click.echo(f"results: {path}")
@@ -131,8 +132,9 @@ def method_specs(methods: tuple[str, ...], weights: str | None) -> list[str]:
 @click.option("--ransac-runs", type=click.IntRange(min=1), default=10, show_default=True,
               help="RANSAC runs per pair: the first on the matches in order (the mAA / AUC columns), the others on "
                    "shuffled orders; the table adds their mean ± sd.")
+@num_threads_option
 @weights_option
-def pose(scenes, methods, output, max_keypoints, resize_max, precision, ransac_runs, weights) -> None:
+def pose(scenes, methods, output, max_keypoints, resize_max, precision, ransac_runs, num_threads, weights) -> None:
     """Relative pose on every image pair of scenes with ground-truth cameras (mAA, AUC).
 
     \b
@@ -147,7 +149,7 @@ def pose(scenes, methods, output, max_keypoints, resize_max, precision, ransac_r
     scenes = list(scenes) or [shared_dir() / "data/sfm/fountain-P11"]
     specs = method_specs(methods, weights)
     config = PoseConfig(max_keypoints=max_keypoints, resize_max=resize_max or None, precision=precision,
-                        ransac_runs=ransac_runs)
+                        ransac_runs=ransac_runs, num_threads=num_threads)
     path = run_pose_benchmark(scenes, [parse_method(m) for m in specs], output, config)
     click.echo((path.parent / "results.md").read_text())
     click.echo(f"results: {path}")
@@ -162,7 +164,8 @@ def pose(scenes, methods, output, max_keypoints, resize_max, precision, ransac_r
               help="Shared COCO photos to warp (the first N).")
 @click.option("--max-keypoints", type=click.IntRange(min=1), default=2000, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random homographies.")
-def localization(methods, output, num_images, max_keypoints, seed) -> None:
+@num_threads_option
+def localization(methods, output, num_images, max_keypoints, seed, num_threads) -> None:
     """How closely matched keypoints follow the surface: photos warped by known homographies.
 
     \b
@@ -179,7 +182,7 @@ def localization(methods, output, num_images, max_keypoints, seed) -> None:
     )
     from sekd_sfm.bench.methods import parse_method
 
-    config = LocalizationConfig(num_images=num_images, max_keypoints=max_keypoints, seed=seed)
+    config = LocalizationConfig(num_images=num_images, max_keypoints=max_keypoints, seed=seed, num_threads=num_threads)
     path = run_localization_benchmark(output, [parse_method(m) for m in (methods or ("sift", "sekd"))], config)
     click.echo((path.parent / "results.md").read_text())
     click.echo(f"results: {path}")

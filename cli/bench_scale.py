@@ -5,7 +5,7 @@ from pathlib import Path
 
 import click
 
-from .options import weights_option
+from .options import num_threads_option, weights_option
 from .reconstruct import mapper_option, mapper_type_option, refine_option
 
 
@@ -36,7 +36,7 @@ def _sizes(ctx, param, value: str) -> tuple[int, ...]:
               help="Largest scene pycolmap's incremental mapper runs on; above it the baseline stops after "
                    "verification (its mapping time grows as N^1.6: about 2.5 hours at 2,000 photos on 2 cores). "
                    "0: no limit.")
-@click.option("--num-threads", type=click.IntRange(min=1), default=None, help="CPU threads (default: all cores).")
+@num_threads_option
 @click.option("--generate-only", is_flag=True, help="Only generate the scenes (OUT/n<N>/scene) and report the time.")
 @click.option("--baseline-from", type=click.Path(file_okay=False, exists=True), default=None,
               help="An earlier `bench scale` folder: its scenes and pycolmap runs are reused where scene settings, "

@@ -8,7 +8,12 @@ import click
 from sekd_sfm.features import FEATURE_TYPES
 
 from .match import match_options
-from .options import feature_options, runtime_options, weights_option
+from .options import (
+    feature_options,
+    num_threads_option,
+    runtime_options,
+    weights_option,
+)
 from .presets import configs_from_context
 from .reconstruct import (
     camera_options,
@@ -85,7 +90,7 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
 @click.option("--max-gap", type=click.IntRange(min=1), default=4, show_default=True,
               help="Pairs (i, i+1) .. (i, i+GAP) of the scene's images in name order.")
 @weights_option
-@click.option("--num-threads", type=click.IntRange(min=1), default=None, help="CPU threads (default: all cores).")
+@num_threads_option
 def ratios(scene, output, feature_list, max_keypoints, resize_max, max_gap, weights, num_threads) -> None:
     """Measure the ratio-test threshold per feature type on SCENE's ground truth (the matcher's defaults).
 

@@ -52,9 +52,14 @@ def weights_option(f):
     )(f)
 
 
+def num_threads_option(f):
+    """``--num-threads``: CPU threads of the networks and OpenCV (default: every core the process may use)."""
+    return click.option("--num-threads", type=click.IntRange(min=1), default=None,
+                        help="CPU threads (default: all available cores).")(f)
+
+
 def runtime_options(f):
-    f = click.option("--num-threads", type=click.IntRange(min=1), default=None,
-                     help="CPU threads (default: all available cores).")(f)
+    f = num_threads_option(f)
     f = click.option("--device", type=click.Choice(DEVICES), default="auto", show_default=True,
                      help="auto uses a CUDA GPU when one is present.")(f)
     f = click.option("--precision", type=click.Choice(PRECISIONS), default="auto", show_default=True,

@@ -144,6 +144,11 @@ def cpu_description() -> dict:
             "torch_kernels": torch.backends.cpu.get_cpu_capability(), "cores": os.cpu_count()}
 
 
+def timing_context() -> dict:
+    """What a benchmark's wall-clock columns (ms per image) depend on: the CPU and torch's intra-op threads."""
+    return {"cpu": cpu_description(), "threads": torch.get_num_threads()}
+
+
 def cpu_reports_bf16() -> bool:
     """True when the CPU's flags name a native bf16 unit (AVX512-BF16 or AMX), whether or not it is usable."""
     flags = cpu_flags()

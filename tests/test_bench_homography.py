@@ -174,6 +174,24 @@ def test_cli_skips_absent_peer_weights(tmp_path, monkeypatch, caplog):
     assert "skipping disk" in caplog.text and "| sift |" in result.output and "| disk |" not in result.output
 
 
+def test_cli_num_threads_is_used_and_recorded(tmp_path):
+    import torch
+
+    make_sequence(tmp_path / "data", "v_shift")
+    before = torch.get_num_threads()
+    try:
+        result = CliRunner().invoke(sekd, ["bench", "homography", str(tmp_path / "data"), "-m", "sift", "--num-threads", "1",
+                                           "-o", str(tmp_path / "out"), "--resize-max", "0", "--ransac-runs", "1"])
+        assert result.exit_code == 0, result.output
+        results = json.loads((tmp_path / "out/results.json").read_text())
+        assert results["config"]["num_threads"] == 1 == results["timing"]["threads"] == torch.get_num_threads()
+        assert results["timing"]["cpu"]["cores"] >= 1
+    finally:
+        torch.set_num_threads(before)
+    refused = CliRunner().invoke(sekd, ["bench", "pose", "--num-threads", "0"])
+    assert refused.exit_code == 2 and "--num-threads" in refused.output
+
+
 def test_an_interrupt_stops_the_whole_benchmark(tmp_path, monkeypatch):
     """Ctrl-C / SIGTERM during one method's extraction must not be reported as that method failing."""
     from sekd_sfm.bench import homography

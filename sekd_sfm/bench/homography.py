@@ -21,7 +21,7 @@ from tqdm import tqdm
 from .. import featurefile as ff
 from ..images import read_image, resized_to_original_matrix
 from ..match import match_descriptors
-from ..runtime import package_versions
+from ..runtime import package_versions, timing_context
 from . import metrics
 from .datasets import Sequence, find_sequences
 from .methods import Method, cached_features, evaluate_each
@@ -44,6 +44,7 @@ class HomographyConfig:
     #: 25 pairs one model's Avg.HA spans 69-77 over 40 runs (sd 1.8), so differences between
     #: single runs below ~4 points are RANSAC's luck; the mean over runs is what can rank models.
     ransac_runs: int = 50
+    num_threads: int | None = None  # CPU threads of the extraction (None: every usable core); ms/image depends on it
 
     def image_tag(self) -> str:
         return f"r{self.resize_max or 'full'}-c{self.crop_multiple}"
@@ -150,12 +151,14 @@ def run_homography_benchmark(roots: list[Path], methods: list[Method], output: P
     def evaluate(method: Method) -> dict:
         feature_config = method.feature_config(config.max_keypoints, config.precision, config.threshold,
                                                config.nms_radius)
-        features, seconds = cached_features(method, feature_config, cache / "images", cache, config.image_tag())
+        features, seconds = cached_features(method, feature_config, cache / "images", cache, config.image_tag(),
+                                            num_threads=config.num_threads)
         binary = ff.read_attrs(features)["descriptor_dtype"] == "uint8"
         pairs = evaluate_method(features, sequences, scales, binary, config.ransac_runs)
         return {"method": asdict(method), "seconds_per_image": seconds, "summary": summarise(pairs), "pairs": pairs}
 
     results["methods"] = evaluate_each(methods, evaluate)
+    results["timing"] = timing_context()  # after the extraction, which set the threads
     return write_reports(results, Path(output))
 
 

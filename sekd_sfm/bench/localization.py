@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import SekdError
 from ..fsio import write_atomic
-from ..runtime import package_versions, shared_dir
+from ..runtime import package_versions, shared_dir, timing_context
 from .methods import Method, evaluate_each
 
 logger = logging.getLogger("sekd")
@@ -37,6 +37,7 @@ class LocalizationConfig:
     scale_range: tuple[float, float] = (0.85, 1.15)
     perspective: float = 2e-4       # largest |h31|, |h32| (1/px) about the photo's centre
     correct_px: float = 2.0         # a match is correct when its distance is under this
+    num_threads: int | None = None  # CPU threads of the extraction (None: every usable core)
 
 
 def random_homography(rng: np.random.Generator, width: int, height: int, config: LocalizationConfig) -> np.ndarray:
@@ -110,7 +111,8 @@ def _evaluate(method: Method, images: Path, work: Path, homographies: dict, conf
     feature_config = FeatureConfig(feature=method.feature, max_keypoints=config.max_keypoints, weights=method.weights,
                                    sekd=SEKDConfig(max_keypoints=config.max_keypoints))
     # overwrite: a rerun with other settings recomputes (cheap here) instead of refusing the old files
-    features = extract_features(images, folder / "features.h5", feature_config, overwrite=True, progress=False)
+    features = extract_features(images, folder / "features.h5", feature_config, overwrite=True, progress=False,
+                                num_threads=config.num_threads)
     pairs = [tuple(key.split(" ")) for key in homographies]
     pairs_file = write_pairs(pairs, folder / "pairs.txt")
     matches = match_features(features, pairs_file, folder / "matches.h5", MatchConfig(mode="mnn"), overwrite=True,
@@ -140,6 +142,7 @@ def run_localization_benchmark(output: str | Path, methods: list[Method], config
     homographies = warp_photos(photos, out / "images", config)
     results = evaluate_each(methods, lambda m: _evaluate(m, out / "images", out / "work", homographies, config))
     report = {"config": asdict(config), "photos": [p.name for p in photos], "versions": package_versions(),
+              "timing": timing_context(),
               "results": results}
     path = write_atomic(out / "results.json", json.dumps(report, indent=1))
     write_atomic(out / "results.md", localization_markdown(report))

@@ -112,18 +112,20 @@ def cache_file(method: Method, config: FeatureConfig, image_root: Path, cache: P
     return Path(cache) / f"{method.label}-{digest}.h5"
 
 
-def cached_features(method: Method, config: FeatureConfig, image_root: Path, cache: Path, tag: str = "") -> tuple[Path, float]:
+def cached_features(method: Method, config: FeatureConfig, image_root: Path, cache: Path, tag: str = "",
+                    num_threads: int | None = None) -> tuple[Path, float]:
     """Features of every image below ``image_root`` for one method, cached in ``cache``.
 
     The file name carries a hash of the feature configuration, the SEKD checkpoint's content
     and ``tag`` (e.g. the image preparation), so a changed setting or model gets a new file. Returns the file and the seconds
-    per image measured when it was extracted (decode + network + write).
+    per image measured when it was extracted (decode + network + write), with ``num_threads``
+    CPU threads (None: every usable core).
     """
     output = cache_file(method, config, image_root, cache, tag)
     timing = output.with_suffix(".time.json")
     before = len(ff.list_keys(output)) if output.exists() else 0
     start = time.perf_counter()
-    extract_features(image_root, output, config, progress=True)
+    extract_features(image_root, output, config, progress=True, num_threads=num_threads)
     extracted = len(ff.list_keys(output)) - before
     if extracted:
         timing.write_text(json.dumps({"seconds_per_image": (time.perf_counter() - start) / extracted}))

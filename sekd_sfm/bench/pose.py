@@ -21,7 +21,7 @@ from tqdm import tqdm
 from .. import featurefile as ff
 from ..errors import SekdError
 from ..match import DEFAULT_RATIO, FALLBACK_RATIO, ROOTSIFT_FEATURES, match_descriptors
-from ..runtime import package_versions
+from ..runtime import package_versions, timing_context
 from . import metrics
 from .datasets import PoseScene, read_pose_scene
 from .methods import Method, cached_features, evaluate_each
@@ -40,6 +40,7 @@ class PoseConfig:
     #: the others on seeded shuffles of the same matches (``metrics.ransac_order``); their mean
     #: and sd show how much of a difference between methods is RANSAC's luck.
     ransac_runs: int = 10
+    num_threads: int | None = None  # CPU threads of the extraction (None: every usable core)
 
 
 def match_pair(f0: dict, f1: dict, feature: str, binary: bool) -> np.ndarray:
@@ -132,6 +133,7 @@ def run_pose_benchmark(scene_dirs: list[Path], methods: list[Method], output: Pa
         return {"method": asdict(method), "summary": summarise(pairs), "pairs": pairs}
 
     results["methods"] = evaluate_each(methods, evaluate)
+    results["timing"] = timing_context()  # after the extraction, which set the threads
     return _write(results, Path(output))
 
 
@@ -140,7 +142,8 @@ def _evaluate_method(method: Method, scenes: list[PoseScene], cache: Path, confi
     feature_config.resize_max = config.resize_max
     pairs = []
     for scene in scenes:
-        features, _ = cached_features(method, feature_config, scene.image_dir, cache / scene.name)
+        features, _ = cached_features(method, feature_config, scene.image_dir, cache / scene.name,
+                                      num_threads=config.num_threads)
         binary = ff.read_attrs(features)["descriptor_dtype"] == "uint8"
         pairs += evaluate_scene(features, scene, method.feature, binary, config)
     return pairs
