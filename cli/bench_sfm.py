@@ -42,7 +42,8 @@ from .reconstruct import (
               help="Run our pipeline once per method ([LABEL=]FEATURE[:WEIGHTS], as `bench homography`), "
                    "instead of once with --feature/--weights.")
 def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel, weights,
-        num_threads, device, precision, match_mode, ratio, rootsift, camera_model, camera_mode, camera_params, mapper_type, mapper,
+        num_threads, device, precision, match_mode, ratio, rootsift, camera_model, camera_mode, camera_params, principal_point,
+        mapper_type, mapper,
         refine, seed, no_baseline, methods) -> None:
     """Reconstruct SCENE with our pipeline and with pycolmap's SIFT; compare with ground-truth cameras.
 
@@ -69,7 +70,8 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
     features_config.resize_max = features_config.resize_max or 1600
     config = ReconstructConfig(
         features=features_config, pairs=PairsConfig(mode="exhaustive"), matching=matching,
-        camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params), mapper_type=mapper_type,
+        camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params,
+                            principal_point=principal_point), mapper_type=mapper_type,
         mapper=list(mapper), seed=seed)
     config.refine.enabled = refine
     report = benchmark_sfm(scene, output or Path(f"bench-sfm-{Path(scene).name}"), config, baseline=not no_baseline,

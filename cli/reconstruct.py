@@ -8,6 +8,7 @@ import click
 
 from sekd_sfm.confs import output_names
 from sekd_sfm.errors import SekdError
+from sekd_sfm.sfm.database import PRINCIPAL_POINT_MIN_IMAGES, PRINCIPAL_POINT_MODES
 
 from .adapt import adapt_in_line, adapt_option
 from .match import match_options, pairs_config, pairs_options
@@ -24,7 +25,7 @@ CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
 
 
 def camera_options(f):
-    """--camera-model, --camera-mode, --camera-params."""
+    """--camera-model, --camera-mode, --camera-params, --principal-point."""
     options = [
         click.option("--camera-model", default="SIMPLE_RADIAL", show_default=True,
                      help="COLMAP camera model (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, ...)."),
@@ -33,6 +34,11 @@ def camera_options(f):
         click.option("--camera-params", default=None,
                      help="Known intrinsics as comma-separated numbers in the model's order, e.g. "
                           "'f,cx,cy,k' for SIMPLE_RADIAL, in COLMAP pixel coordinates (pixel centre at +0.5)."),
+        click.option("--principal-point", type=click.Choice(PRINCIPAL_POINT_MODES), default="auto", show_default=True,
+                     help="Bundle adjustment refines each camera's principal point (refine) or keeps it at the image "
+                          f"centre (fixed, COLMAP's default). auto: refine when every camera has at least "
+                          f"{PRINCIPAL_POINT_MIN_IMAGES} photos and --camera-params is not given (a lens's centre is "
+                          "rarely the image's; many views of one camera can measure it)."),
     ]
     for option in reversed(options):
         f = option(f)
@@ -117,7 +123,7 @@ seed_option = click.option("--seed", type=int, default=0, show_default=True,
 @executor_options
 def reconstruct(images, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel,
                 max_pixels, weights, num_threads, device, precision, pairs_mode, pairs_file, window, loop_every, match_mode, ratio,
-                rootsift, camera_model, camera_mode, camera_params, mapper_type, mapper, refine, verification, seed,
+                rootsift, camera_model, camera_mode, camera_params, principal_point, mapper_type, mapper, refine, verification, seed,
                 features_file, matches_file, overwrite, no_progress, executor, ray_options) -> None:
     """Reconstruct cameras and 3D points from the images below IMAGES (COLMAP SfM through pycolmap).
 
@@ -159,7 +165,8 @@ def reconstruct(images, output, feature, max_keypoints, threshold, nms_radius, r
         features=features_config,
         pairs=pairs_config(pairs_mode, pairs_file, window, loop_every),
         matching=matching,
-        camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params),
+        camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params,
+                            principal_point=principal_point),
         mapper_type=mapper_type, mapper=list(mapper), verification=list(verification), seed=seed)
     config.refine.enabled = refine
     if current_conf():  # hloc-style names, so the files of several presets coexist in OUTPUT

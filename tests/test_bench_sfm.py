@@ -20,6 +20,9 @@ def test_sfm_benchmark_two_methods_with_pose_maa(tmp_path, shared):
     n = sift["registered_images"]
     assert 0.3 < sift["maa"] <= n * (n - 1) / 2 / 55
     assert sift["mean_track_length"] > 2
+    assert 0 <= sift["auc1"] <= sift["auc5"] <= 1 and "pose AUC@1" in result.output
+    # One camera for the 11 photos: `auto` lets bundle adjustment refine its principal point.
+    assert json.loads((tmp_path / "sift" / "stats.json").read_text())["principal_point"] == "refined"
     assert "| sift |" in result.output and "pose mAA" in result.output
 
 

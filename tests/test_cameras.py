@@ -7,11 +7,15 @@ from PIL import Image
 from sekd_sfm.errors import SekdError
 from sekd_sfm.sfm.colmap import open_database, require_pycolmap
 from sekd_sfm.sfm.database import (
+    PRINCIPAL_POINT_MIN_IMAGES,
     CameraConfig,
     _import_images,
     camera_groups,
     camera_key,
+    images_per_camera,
+    refines_principal_point,
 )
+from sekd_sfm.sfm.mapping import default_options, set_principal_point_refinement
 
 pycolmap = require_pycolmap()
 EXIF_IFD, FOCAL, MAKE, MODEL = 0x8769, 0x920A, 0x010F, 0x0110
@@ -74,6 +78,42 @@ def test_auto_mode_shares_cameras_in_the_database(folder, tmp_path_factory):
     assert len(set(ids.values())) == 5
     assert ids["a.jpg"] == ids["b.jpg"] == ids["c.jpg"] and ids["f.jpg"] == ids["g.jpg"]
     assert len({ids["a.jpg"], ids["d.jpg"], ids["e.jpg"], ids["f.jpg"], ids["h.jpg"]}) == 5
+
+
+def test_images_per_camera_counts_the_auto_groups(folder, tmp_path_factory):
+    database = tmp_path_factory.mktemp("db") / "database.db"
+    _import_images(database, folder, sorted(p.name for p in folder.glob("*.jpg")), CameraConfig(mode="auto"))
+    assert images_per_camera(database) == [1, 1, 1, 2, 3]  # d, e, h alone; f-g; a-c
+
+
+@pytest.mark.parametrize("setting, params, per_camera, refined", [
+    ("auto", None, [11], True),                                   # fountain-P11: one camera, 11 photos
+    ("auto", None, [PRINCIPAL_POINT_MIN_IMAGES] * 3, True),
+    ("auto", None, [40, PRINCIPAL_POINT_MIN_IMAGES - 1], False),  # one camera too few photos: all stay fixed
+    ("auto", None, [1] * 10, False),                              # internet photos, one camera each
+    ("auto", None, [], False),
+    ("auto", "100,32,24", [50], False),                           # known intrinsics are kept
+    ("refine", None, [1], True),
+    ("fixed", None, [50], False),
+])
+def test_principal_point_rule(setting, params, per_camera, refined):
+    camera = CameraConfig(params=params, principal_point=setting)
+    assert refines_principal_point(camera, per_camera) is refined
+
+
+def test_unknown_principal_point_setting_is_an_error():
+    with pytest.raises(SekdError, match="unknown principal-point setting 'free'; choose from auto, refine, fixed"):
+        refines_principal_point(CameraConfig(principal_point="free"), [20])
+
+
+def test_principal_point_setting_reaches_every_mapper():
+    for kind, read in [("incremental", lambda o: o.ba_refine_principal_point),
+                       ("hierarchical", lambda o: o.incremental_options.ba_refine_principal_point),
+                       ("global", lambda o: o.mapper.bundle_adjustment.refine_principal_point)]:
+        options = default_options(kind)
+        assert read(options) is False  # COLMAP's default
+        set_principal_point_refinement(options, True)
+        assert read(options) is True, kind
 
 
 def test_camera_params_still_win(folder, tmp_path_factory):

@@ -16,7 +16,7 @@ from sekd_sfm.features import FeatureConfig, build_extractor
 from sekd_sfm.sfm.colmap import open_database, require_pycolmap, set_options
 from sekd_sfm.sfm.database import CameraConfig, parse_camera_params
 from sekd_sfm.sfm.mapping import mapper_options, run_mapper
-from sekd_sfm.sfm.reconstruct import ReconstructConfig, reconstruct
+from sekd_sfm.sfm.reconstruct import ReconstructConfig, _principal_point, reconstruct
 
 pycolmap = require_pycolmap()
 W, H, F = 640, 480, 500.0
@@ -177,11 +177,25 @@ def test_synthetic_outputs_and_stats(synthetic):
     # Blank photos: no patch can be aligned, so refinement leaves every keypoint where it was.
     assert stats["refine"]["aligned"] == 0 and stats["refine"]["matches"] > 0
     assert stats["unregistered"] == [] and stats["config"]["camera"]["mode"] == "single"
+    assert stats["principal_point"] == "fixed"  # --camera-params given: known intrinsics are kept
     assert stats["matching"] == {"mode": "both", "ratio": 0.85, "metric": "l2", "rootsift": True}  # SIFT defaults
     assert "incremental_pipeline" in (out / "colmap.log").read_text()
     assert not list(out.glob("colmap.log.*")) and not list(out.glob("mapping-*"))
     assert {p.name for p in (out / "model").iterdir()} >= {"cameras.bin", "images.bin", "points3D.bin"}
     assert (out / "pairs.txt").read_text().count("\n") == 28
+
+
+def test_principal_point_setting_and_an_explicit_mapper_override(synthetic):
+    _, _, out, _ = synthetic
+    refine = CameraConfig(model="SIMPLE_PINHOLE", mode="single", params=CALIBRATED.params, principal_point="refine")
+    options = mapper_options([])
+    assert _principal_point(ReconstructConfig(camera=refine), out / "database.db", options) == "refined"
+    assert options.ba_refine_principal_point is True
+    assignment = ["ba_refine_principal_point=false"]
+    options = mapper_options(assignment)
+    assert _principal_point(ReconstructConfig(camera=refine, mapper=assignment), out / "database.db",
+                            options) == "set by --mapper"
+    assert options.ba_refine_principal_point is False  # the user's --mapper value is left alone
 
 
 def test_database_keypoints_use_colmap_pixel_convention(synthetic):

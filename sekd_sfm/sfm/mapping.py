@@ -105,6 +105,14 @@ def mapper_type_of(options) -> str:
     raise SekdError(f"not a mapper options object: {type(options).__name__}")
 
 
+def set_principal_point_refinement(options, refine: bool) -> None:
+    """Let bundle adjustment refine the cameras' principal points (or keep them fixed) in any mapper's ``options``."""
+    if mapper_type_of(options) == "global":
+        options.mapper.bundle_adjustment.refine_principal_point = refine
+    else:  # incremental, or the incremental mapping of each hierarchical cluster
+        getattr(options, "incremental_options", options).ba_refine_principal_point = refine
+
+
 def min_num_matches(options) -> int:
     """The verified inliers a pair needs to link two images in the mapper of ``options``."""
     inner = getattr(options, "incremental_options", options)

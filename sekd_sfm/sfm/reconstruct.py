@@ -37,8 +37,11 @@ from ..runtime import package_versions
 from .colmap import clean_logs, colmap_log, log_prefix, require_pycolmap
 from .database import (
     CameraConfig,
+    check_principal_point_mode,
     create_database,
+    images_per_camera,
     parse_camera_params,
+    refines_principal_point,
     two_view_options,
     verify_matches,
 )
@@ -50,6 +53,7 @@ from .mapping import (
     registered_names,
     resolve_mapper_type,
     run_mapper,
+    set_principal_point_refinement,
     write_models,
 )
 from .refine import RefineConfig, refine_keypoints, refine_summary
@@ -184,6 +188,7 @@ def _run(image_dir, out, config, timer, stats, stages: dict, features, matches) 
     options = mapper_options(config.mapper, config.seed, mapper_type)
     two_view = two_view_options(config.verification, config.seed)
     parse_camera_params(config.camera.model, config.camera.params)
+    check_principal_point_mode(config.camera.principal_point)
     features, pairs_file, matches = _inputs(image_dir, out, config, timer, stats, stages, features, matches)
     num_threads, progress = stages["num_threads"], stages["progress"]
     pairs, keypoints = read_pairs(pairs_file), features
@@ -196,6 +201,7 @@ def _run(image_dir, out, config, timer, stats, stages: dict, features, matches) 
     with colmap_log(out / "colmap.log") as log:
         with timer("database"):
             create_database(image_dir, keypoints, matches, pairs, database, config.camera)
+        stats["principal_point"] = _principal_point(config, database, options)
         with timer("verification"):
             verify_matches(database, two_view, num_threads or -1)
         match_stats = match_statistics(database, min_num_matches(options))
@@ -204,6 +210,20 @@ def _run(image_dir, out, config, timer, stats, stages: dict, features, matches) 
         with timer("mapping"):
             models = run_mapper(database, image_dir, options, progress, log_prefix=log_prefix(log))
     return _finish(models, match_stats, options, out, stats, database)
+
+
+def _principal_point(config: ReconstructConfig, database: Path, options) -> str:
+    """Set the mapper's principal-point refinement from ``config.camera`` and the database's cameras; returns
+    ``refined`` / ``fixed`` (for stats.json). An explicit ``--mapper ...refine_principal_point=...`` wins."""
+    if any("refine_principal_point" in assignment for assignment in config.mapper):
+        return "set by --mapper"
+    per_camera = images_per_camera(database)
+    refine = refines_principal_point(config.camera, per_camera)
+    set_principal_point_refinement(options, refine)
+    logger.info("principal point %s in bundle adjustment (%s; %d camera(s), fewest photos per camera %d)",
+                "refined" if refine else "fixed at the image centre", config.camera.principal_point,
+                len(per_camera), min(per_camera, default=0))
+    return "refined" if refine else "fixed"
 
 
 def _num_photos(image_dir: Path, features) -> int:
