@@ -8,7 +8,11 @@ import click
 
 from sekd_sfm.confs import output_names
 from sekd_sfm.errors import SekdError
-from sekd_sfm.sfm.database import PRINCIPAL_POINT_MIN_IMAGES, PRINCIPAL_POINT_MODES
+from sekd_sfm.sfm.database import (
+    CAMERA_MODES,
+    PRINCIPAL_POINT_MIN_IMAGES,
+    PRINCIPAL_POINT_MODES,
+)
 
 from .adapt import adapt_in_line, adapt_option
 from .match import match_options, pairs_config, pairs_options
@@ -21,15 +25,13 @@ from .options import (
 )
 from .presets import conf_option, configs_from_context, current_conf
 
-CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
-
 
 def camera_options(f):
     """--camera-model, --camera-mode, --camera-params, --principal-point."""
     options = [
         click.option("--camera-model", default="SIMPLE_RADIAL", show_default=True,
                      help="COLMAP camera model (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, ...)."),
-        click.option("--camera-mode", type=click.Choice(CAMERA_MODES), default="auto", show_default=True,
+        click.option("--camera-mode", type=click.Choice(list(CAMERA_MODES)), default="auto", show_default=True,
                      help="Cameras shared by: auto (same size and EXIF), single (all images), per-folder, per-image."),
         click.option("--camera-params", default=None,
                      help="Known intrinsics as comma-separated numbers in the model's order, e.g. "

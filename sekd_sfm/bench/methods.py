@@ -118,8 +118,9 @@ def cached_features(method: Method, config: FeatureConfig, image_root: Path, cac
 
     The file name carries a hash of the feature configuration, the SEKD checkpoint's content
     and ``tag`` (e.g. the image preparation), so a changed setting or model gets a new file. Returns the file and the seconds
-    per image measured when it was extracted (decode + network + write), with ``num_threads``
-    CPU threads (None: every usable core).
+    per image measured by the run that extracted it (decode + network + write); ``num_threads``
+    CPU threads (None: every usable core) for what this call extracts. A file taken from the
+    cache keeps the timing of the run that wrote it, whatever its thread count.
     """
     output = cache_file(method, config, image_root, cache, tag)
     timing = output.with_suffix(".time.json")
