@@ -49,9 +49,12 @@ def sekd(quiet: bool) -> None:
     Data flows through the commands in this order:
       images -> extract -> features.h5 -> match -> matches.h5 -> reconstruct -> COLMAP model
     Every command resumes where an interrupted run stopped. Run `sekd COMMAND --help` for details.
-    Failures print one `Error: ...` line (exit code 1); set SEKD_DEBUG=1 to get the traceback.
+    Failures print one `Error: ...` line (exit code 1); set SEKD_DEBUG=1 to get the traceback
+    (and sekd's debug notes).
     """
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(message)s", stream=sys.stderr)
+    if debug_enabled():
+        logging.getLogger("sekd").setLevel(logging.DEBUG)
     stop_cleanly_on_sigterm()
 
 

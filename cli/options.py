@@ -116,8 +116,8 @@ def executor_options(f):
                      help="local: this machine; ray: the workers of a Ray cluster (needs pip install "
                           "\"sekd-sfm[ray]\" and files every node sees at the same path; docs/cluster.md)."),
         click.option("--ray-address", default="auto", show_default=True,
-                     help="Ray cluster: auto = $RAY_ADDRESS, else the one `ray start` made on this machine, "
-                          "else a new local one; or HOST:PORT of the head node."),
+                     help="Ray cluster: auto = $RAY_ADDRESS, else one `ray start` made on this machine, "
+                          "else a new local one for this run only; or HOST:PORT of the head node."),
         click.option("--threads-per-worker", type=click.IntRange(min=1), default=1, show_default=True,
                      help="ray: CPU threads (Ray CPUs) per worker; one worker per that many CPUs of the cluster."),
         click.option("--gpus-per-worker", type=click.FloatRange(min=0), default=0, show_default=True,

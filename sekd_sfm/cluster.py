@@ -41,11 +41,14 @@ import math
 import os
 import pickle
 import socket
+import sys
+import tempfile
 import threading
 import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -124,6 +127,8 @@ def check_executor(executor: str, options: RayOptions | None = None) -> None:
         address = (options or RayOptions()).address
         if address != "auto":
             _check_reachable(address)
+        elif os.environ.get("RAY_ADDRESS", "auto") != "auto":
+            _check_reachable(os.environ["RAY_ADDRESS"], what="$RAY_ADDRESS")
 
 
 def _import_ray():
@@ -144,35 +149,164 @@ def _import_ray():
 
 
 def _connect(options: RayOptions):
-    """``(ray, owned)``: Ray connected to the cluster; ``owned`` when this call connected it (so it disconnects)."""
+    """``(ray, owned)``: Ray connected to the cluster; ``owned`` when this call connected it (so it disconnects).
+
+    ``auto``: ``$RAY_ADDRESS``; else a cluster running on this machine, whatever ``--temp-dir``
+    ``ray start`` was given (``ray.init()`` alone finds only one under ``/tmp/ray`` and would
+    quietly start a second, one-node cluster beside it); else a new local cluster sized to the
+    machine, for this run only. An address given explicitly wins over ``$RAY_ADDRESS`` (which
+    ``ray.init`` would otherwise prefer).
+    """
     ray = _import_ray()
     if ray.is_initialized():
         return ray, False
-    address = None if options.address == "auto" else options.address
     start = time.monotonic()
-    try:
-        # Worker output stays in the cluster's logs: errors come back as results, and the
-        # driver's terminal keeps one progress bar.
-        ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
-    except (ConnectionError, RuntimeError, ValueError) as exc:
-        raise SekdError(
-            f"cannot connect to the Ray cluster at {options.address!r} ({str(exc).splitlines()[0]}); start one with "
-            "`ray start --head` or pass --ray-address HOST:PORT of a running one"
-        ) from None
+    address, notes = options.address, []
+    if address == "auto" and os.environ.get("RAY_ADDRESS", "auto") != "auto":
+        address = os.environ["RAY_ADDRESS"]
+        _check_reachable(address, what="$RAY_ADDRESS")  # at once, where Ray would retry for minutes
+    # Worker output stays in the cluster's logs: errors come back as results, and the
+    # driver's terminal keeps one progress bar.
+    init = {"log_to_driver": False, "logging_level": logging.WARNING}
+    with _stderr_to_log():
+        if address == "auto":
+            address = _running_cluster_address(notes)
+        before = os.environ.pop("RAY_ADDRESS", None)  # ray.init would prefer it to its argument
+        try:
+            if address is None:
+                _start_local_cluster(ray, init)
+            else:
+                ray.init(address=address, **init)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            if address is None:
+                raise SekdError(f"no Ray cluster runs here and a local one could not start ({_first_line(exc)}); "
+                                "start one with `ray start --head` or pass --ray-address HOST:PORT") from None
+            raise SekdError(
+                f"cannot connect to the Ray cluster at {address!r} ({_first_line(exc)}); "
+                "start one with `ray start --head` or pass --ray-address HOST:PORT of a running one"
+            ) from None
+        finally:
+            if before is not None:
+                os.environ["RAY_ADDRESS"] = before
+    for note in notes:
+        logger.info(note)
     _quiet_ray_data()
-    logger.info("Ray: connected to the cluster in %.1f s", time.monotonic() - start)
+    resources = ray.cluster_resources()
+    nodes = sum(1 for node in ray.nodes() if node.get("Alive"))
+    shape = (f"{nodes} node{'s' * (nodes != 1)}, {resources.get('CPU', 0):g} CPUs"
+             + (f", {resources['GPU']:g} GPUs" if resources.get("GPU") else ""))
+    if address is None:
+        logger.info("Ray: started a local cluster for this run (%s) in %.1f s, none was running here; "
+                    "`ray start --head` keeps one running between runs", shape, time.monotonic() - start)
+    else:
+        logger.info("Ray: connected to the cluster at %s (%s) in %.1f s", address, shape, time.monotonic() - start)
     return ray, True
 
 
-def _check_reachable(address: str, timeout: float = 5.0) -> None:
-    """SekdError at once when nothing listens at ``HOST:PORT`` (Ray itself would retry for minutes)."""
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+def _start_local_cluster(ray, init: dict) -> None:
+    """Start a one-node cluster for this run, with a token of its own and no dashboard.
+
+    Ray 2.60 turns token authentication on for a cluster ``ray.init()`` starts and, when the
+    user has no token, saves a new one to ``~/.ray/auth_token``; every later ``ray start
+    --head`` on the machine then requires it, and a node joining with plain ``ray start
+    --address`` is refused. So a throwaway cluster gets a random token in the environment
+    (inherited by its processes, written nowhere; Ray still turns the mode on itself), unless
+    the user chose a mode or has a token. No dashboard: its processes would take seconds of
+    the cores the workers start on.
+    """
+    from .runtime import usable_cores
+
+    own = not any(os.environ.get(name) for name in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")) \
+        and not (Path.home() / ".ray" / "auth_token").exists()
+    if own:
+        os.environ["RAY_AUTH_TOKEN"] = uuid.uuid4().hex + uuid.uuid4().hex
+    ray.init(num_cpus=usable_cores(), include_dashboard=False, **init)
+
+
+def _running_cluster_address(notes: list[str]) -> str | None:
+    """``HOST:PORT`` of a Ray cluster running on this machine that answers from here, or None (``notes`` say why).
+
+    Ray's own candidates, as ``ray status`` finds them: the latest ``ray start`` recorded under
+    ``/tmp/ray``, then every GCS process on the machine (a cluster started with another
+    ``--temp-dir`` is found only so). Resolved here because ``ray.init(address="auto")``
+    connects but then loses its actors when the cluster has another ``--temp-dir`` (Ray 2.60),
+    while the same address given explicitly works; and a GCS process seen on this machine may
+    not be reachable from here (another network namespace or container sharing the process
+    table), where Ray would retry it for minutes.
+    """
+    try:
+        from ray._private.services import (  # no public equivalent
+            find_bootstrap_address,
+            find_gcs_addresses,
+        )
+    except ImportError:  # a Ray without them: let ray.init resolve "auto" itself (it fails if none runs)
+        return "auto"
+    latest = find_bootstrap_address(None)
+    candidates = ([latest] if latest else []) + sorted(set(find_gcs_addresses()) - {latest})
+    answering = [address for address in candidates if _answers(address)]
+    if len(candidates) > len(answering):
+        silent = ", ".join(sorted(set(candidates) - set(answering)))
+        notes.append(f"Ray: a cluster on this machine does not answer from here ({silent})")
+    if len(answering) > 1:
+        notes.append(f"Ray: {len(answering)} clusters run here ({', '.join(answering)}), using {answering[0]}; "
+                     "--ray-address chooses another")
+    return answering[0] if answering else None
+
+
+def _answers(address: str) -> bool:
+    try:
+        _check_reachable(address, timeout=2.0)
+    except SekdError:
+        return False
+    return True
+
+
+@contextmanager
+def _stderr_to_log() -> Iterator[None]:
+    """Send file descriptor 2 to the log while Ray connects, then restore it.
+
+    Ray's C++ core writes operator notes straight to the process's stderr as it starts (how
+    it found its IP address, the log level it read from RAY_BACKEND_LOG_LEVEL, token
+    authentication), before and outside Python's logging; between the driver's own lines they
+    read like failures. They are kept: logged at debug level (``SEKD_DEBUG=1`` shows them).
+    """
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no usable stderr (a closed descriptor, an embedding host): nothing to hide
+        yield
+        return
+    with tempfile.TemporaryFile() as notes:
+        os.dup2(notes.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            notes.seek(0)
+            text = notes.read().decode(errors="replace").strip()
+            if text:
+                logger.debug("Ray's notes while connecting:\n%s", text)
+
+
+def _check_reachable(address: str, timeout: float = 5.0, what: str = "--ray-address") -> None:
+    """SekdError at once when nothing listens at ``HOST:PORT`` (Ray itself would retry for minutes).
+
+    ``what``: where the address came from, for the message.
+    """
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
-        raise SekdError(f"--ray-address {address!r}: expected HOST:PORT (e.g. 10.0.0.5:6379), ray://HOST:PORT or auto")
+        raise SekdError(f"{what} {address!r}: expected HOST:PORT (e.g. 10.0.0.5:6379), ray://HOST:PORT or auto")
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
     except OSError as exc:
-        raise SekdError(f"no Ray cluster answers at {address} ({exc.strerror or exc}); start one there with "
+        source = "" if what == "--ray-address" else f" (from {what})"
+        raise SekdError(f"no Ray cluster answers at {address}{source} ({exc.strerror or exc}); start one there with "
                         "`ray start --head --port PORT`, or check the address (`ray status` on the head node)") from None
 
 

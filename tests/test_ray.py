@@ -272,6 +272,84 @@ def test_driver_killed_mid_run_resumes_without_redoing(cluster, photos_320, tmp_
     assert _contents(out) == local
 
 
+def _sekd_in(ns: str, *args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """``sekd ARGS`` inside the namespace ``ns``, with ``env`` replacing ``$RAY_ADDRESS`` (None: unset)."""
+    environ = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"} | (env or {})
+    return subprocess.run(["ip", "netns", "exec", ns, SEKD_BIN, *args], env=environ, check=False,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_auto_address_finds_the_running_cluster(cluster, tmp_path):
+    """``--ray-address auto`` (the default) without ``$RAY_ADDRESS`` joins the cluster ``ray start`` made here, although
+    it has its own ``--temp-dir`` (``ray.init()`` alone would start a second, one-node cluster); an explicit address
+    wins over ``$RAY_ADDRESS``; Ray's start-up notes stay out of the terminal."""
+    ns, address = cluster
+    images = _photos(tmp_path / "images", 2)
+    args = ("extract", str(images), "--resize-max", "160", "--max-keypoints", "100", "--no-progress", "--executor", "ray")
+    auto = _sekd_in(ns, *args, "-o", str(tmp_path / "auto.h5"))
+    assert auto.returncode == 0, auto.stderr[-2000:]
+    assert f"Ray: connected to the cluster at {address} (2 nodes, 2 CPUs)" in auto.stderr
+    assert "network_util" not in auto.stderr and "logging.cc" not in auto.stderr, auto.stderr[-2000:]
+    explicit = _sekd_in(ns, *args, "-o", str(tmp_path / "explicit.h5"), "--ray-address", address,
+                        env={"RAY_ADDRESS": f"127.0.0.1:{_closed_port()}"})
+    assert explicit.returncode == 0, explicit.stderr[-2000:]
+    assert f"Ray: connected to the cluster at {address} (2 nodes" in explicit.stderr
+    assert _contents(tmp_path / "auto.h5") == _contents(tmp_path / "explicit.h5")
+
+
+def test_auto_address_without_a_cluster_starts_a_local_one(tmp_path):
+    """In a namespace where no cluster answers, ``auto`` starts a one-node cluster for the run and stops it after,
+    leaving no ``~/.ray/auth_token`` behind (which would make every later ``ray start --head`` here require it)."""
+    pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
+    if shutil.which("ip") is None:
+        pytest.skip("ip (iproute2) not found")
+    ns = f"sekdlocal{os.getpid()}"
+    if _sh("ip", "netns", "add", ns).returncode != 0:
+        pytest.skip("cannot create a network namespace (needs root)")
+    try:
+        _sh("ip", "netns", "exec", ns, "ip", "link", "set", "lo", "up")
+        token = Path.home() / ".ray" / "auth_token"
+        had_token = token.exists()
+        images = _photos(tmp_path / "images", 2)
+        run = _sekd_in(ns, "extract", str(images), "-o", str(tmp_path / "f.h5"), "--resize-max", "160",
+                       "--max-keypoints", "100", "--no-progress", "--executor", "ray")
+        assert run.returncode == 0, run.stderr[-2000:]
+        assert re.search(r"Ray: started a local cluster for this run \(1 node, \d+ CPUs?\)", run.stderr), run.stderr
+        assert len({name.split("/")[0] for name in _contents(tmp_path / "f.h5")}) == 2
+        deadline = time.monotonic() + 10
+        while _namespace_pids(ns) and time.monotonic() < deadline:  # the driver stops what it started
+            time.sleep(0.5)
+        assert not _namespace_pids(ns)
+        assert token.exists() == had_token
+    finally:
+        _stop_namespace(ns, tmp_path / "none")
+
+
+def test_unreachable_ray_address_variable_is_one_error_line(tmp_path, monkeypatch):
+    pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
+    images = _photos(tmp_path / "images", 1)
+    address = f"127.0.0.1:{_closed_port()}"
+    monkeypatch.setenv("RAY_ADDRESS", address)
+    result = CliRunner().invoke(sekd, ["extract", str(images), "-o", str(tmp_path / "f.h5"), "--executor", "ray"])
+    assert result.exit_code == 1
+    lines = result.output.strip().splitlines()
+    assert lines[-1].startswith(f"Error: no Ray cluster answers at {address} (from $RAY_ADDRESS) ("), lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images"]  # refused before anything was written
+
+
+def test_ray_start_up_notes_go_to_the_debug_log(capfd, caplog):
+    """What Ray's C++ core writes to file descriptor 2 while connecting is logged at debug level, not shown."""
+    import logging
+
+    from sekd_sfm.cluster import _stderr_to_log
+
+    with caplog.at_level(logging.DEBUG, logger="sekd"), _stderr_to_log():
+        os.write(2, b"[W network_util.cc:330] Failed to determine local IP\n")
+    os.write(2, b"after\n")
+    assert capfd.readouterr().err == "after\n"
+    assert "Failed to determine local IP" in caplog.text
+
+
 def test_missing_ray_is_one_error_line(tmp_path, monkeypatch):
     images = _photos(tmp_path / "images", 1)
     monkeypatch.setitem(sys.modules, "ray", None)  # ``import ray`` now raises ImportError
