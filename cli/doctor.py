@@ -1,6 +1,7 @@
 """``sekd doctor``: what this installation and machine can do."""
 from __future__ import annotations
 
+import importlib.metadata
 import os
 
 import click
@@ -39,8 +40,46 @@ def doctor() -> None:
     ram = _physical_memory()
     click.echo(f"{'memory':<18}{ram / 2**30:.1f} GB" if ram else f"{'memory':<18}unknown")
     click.echo(f"{'pixel cap':<18}{DEFAULT_MAX_PIXELS / 1e6:g} MP per image (extract/reconstruct --max-pixels)")
+    for name, line in _extras().items():
+        click.echo(f"{name:<18}{line}")
     state = "on: failures show the traceback" if debug_enabled() else "off: failures print one Error: line"
     click.echo(f"{'debug':<18}{DEBUG_VARIABLE}={os.environ.get(DEBUG_VARIABLE, '')!s} ({state})")
+
+
+#: Optional extras: (what they enable, the packages whose versions show they are installed).
+EXTRAS = {
+    "ray": ("--executor ray", ("ray",)),
+    "int8": ("--precision int8", ("openvino", "nncf")),
+    "viz": ("export --format html", ("plotly",)),
+}
+
+
+def _extras() -> dict[str, str]:
+    """``extra ray -> "2.60.0 (--executor ray); ..."``: each optional extra, installed or the command that installs it."""
+    lines = {}
+    for extra, (enables, packages) in EXTRAS.items():
+        try:  # metadata only: importing Ray or OpenVINO takes seconds
+            versions = [f"{name} {importlib.metadata.version(name)}" for name in packages]
+        except importlib.metadata.PackageNotFoundError:
+            lines[f"extra {extra}"] = f'not installed ({enables}: pip install "sekd-sfm[{extra}]")'
+            continue
+        lines[f"extra {extra}"] = f"{', '.join(versions)} ({enables})"
+    if "not installed" not in lines["extra ray"]:
+        lines["ray cluster here"] = _ray_cluster_here()
+    return lines
+
+
+def _ray_cluster_here() -> str:
+    """The Ray cluster ``--ray-address auto`` would join from here, or what it does instead."""
+    from sekd_sfm.cluster import _running_cluster_address
+
+    notes: list[str] = []
+    if os.environ.get("RAY_ADDRESS", "auto") != "auto":
+        return f"$RAY_ADDRESS={os.environ['RAY_ADDRESS']} (what --ray-address auto uses)"
+    address = _running_cluster_address(notes)
+    if address and address != "auto":
+        return f"{address} (what --ray-address auto joins)"
+    return "none running: --executor ray would start a local one for each run (`ray start --head` keeps one)"
 
 
 def _physical_memory() -> int | None:

@@ -194,6 +194,32 @@ def test_cli_version_and_doctor():
     assert result.exit_code == 0 and "avx512_bf16" in result.output and "embedded model" in result.output
 
 
+def test_doctor_lists_the_optional_extras(monkeypatch):
+    """Each extra: its packages' versions, or the install command (from package metadata, nothing imported)."""
+    import importlib.metadata
+
+    from sekd_sfm.cli import doctor
+
+    real = importlib.metadata.version
+
+    def version(name: str) -> str:
+        if name in ("openvino", "ray"):
+            raise importlib.metadata.PackageNotFoundError(name)
+        return {"nncf": "9.9", "plotly": "1.2.3"}.get(name) or real(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", version)
+    assert doctor._extras() == {
+        "extra ray": 'not installed (--executor ray: pip install "sekd-sfm[ray]")',
+        "extra int8": 'not installed (--precision int8: pip install "sekd-sfm[int8]")',
+        "extra viz": "plotly 1.2.3 (export --format html)",
+    }
+    monkeypatch.setattr(importlib.metadata, "version", lambda name: {"ray": "2.60.0"}.get(name) or version(name))
+    monkeypatch.setenv("RAY_ADDRESS", "10.0.0.5:6379")
+    extras = doctor._extras()
+    assert extras["extra ray"] == "ray 2.60.0 (--executor ray)"
+    assert extras["ray cluster here"] == "$RAY_ADDRESS=10.0.0.5:6379 (what --ray-address auto uses)"
+
+
 def test_cpu_description_matches_the_flags_the_kernel_reports():
     from sekd_sfm.runtime import CPU_FEATURES, cpu_description, cpu_flags
 

@@ -295,6 +295,8 @@ def test_auto_address_finds_the_running_cluster(cluster, tmp_path):
     assert explicit.returncode == 0, explicit.stderr[-2000:]
     assert f"Ray: connected to the cluster at {address} (2 nodes" in explicit.stderr
     assert _contents(tmp_path / "auto.h5") == _contents(tmp_path / "explicit.h5")
+    doctor = _sekd_in(ns, "doctor")
+    assert doctor.returncode == 0 and f"{address} (what --ray-address auto joins)" in doctor.stdout, doctor.stdout
 
 
 def test_auto_address_without_a_cluster_starts_a_local_one(tmp_path):
