@@ -352,6 +352,29 @@ def test_ray_start_up_notes_go_to_the_debug_log(capfd, caplog):
     assert "Failed to determine local IP" in caplog.text
 
 
+def test_reconstruct_on_ray(cluster, tmp_path):
+    """``sekd reconstruct --executor ray``: extraction and matching on the cluster, mapping here; 5 fountain-P11
+    photos at 640 px all registered, and the feature file equal to a one-thread local extraction."""
+    fountain = SHARED / "data/sfm/fountain-P11/images"
+    if not fountain.is_dir():
+        pytest.skip(f"shared data not found at {fountain}")
+    images = tmp_path / "images"
+    images.mkdir()
+    for src in sorted(fountain.iterdir())[:5]:
+        (images / src.name).symlink_to(src)
+    out = tmp_path / "out"
+    run = subprocess.run(_ray_cli(cluster, "reconstruct", str(images), "-o", str(out), "--resize-max", "640",
+                                  "--no-progress"), check=False, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert re.search(r"Ray: 5 imgs in ", run.stderr), run.stderr[-2000:]
+    assert re.search(r"Ray: 10 pairs in ", run.stderr), run.stderr[-2000:]
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["status"] == "ok" and stats["model"]["registered_images"] == 5
+    local = extract_features(images, tmp_path / "local.h5", FeatureConfig(resize_max=640), progress=False,
+                             num_threads=1)
+    assert _contents(out / "features.h5") == _contents(local)
+
+
 def test_missing_ray_is_one_error_line(tmp_path, monkeypatch):
     images = _photos(tmp_path / "images", 1)
     monkeypatch.setitem(sys.modules, "ray", None)  # ``import ray`` now raises ImportError
