@@ -294,6 +294,27 @@ def _stderr_to_log() -> Iterator[None]:
                 logger.debug("Ray's notes while connecting:\n%s", text)
 
 
+@contextmanager
+def session(executor: str, options: RayOptions | None = None) -> Iterator[None]:
+    """One Ray connection for several stages (``sekd reconstruct``: extraction, then matching).
+
+    Inside it, ``extract_on_ray`` / ``match_on_ray`` find Ray connected and leave it so; a local
+    cluster started for the run (no cluster here) is started and stopped once, not per stage.
+    Does nothing for the local executor.
+    """
+    if executor != "ray":
+        yield
+        return
+    options = options or RayOptions()
+    check_executor(executor, options)
+    ray, owned = _connect(options)
+    try:
+        yield
+    finally:
+        if owned:
+            ray.shutdown()
+
+
 def _check_reachable(address: str, timeout: float = 5.0, what: str = "--ray-address") -> None:
     """SekdError at once when nothing listens at ``HOST:PORT`` (Ray itself would retry for minutes).
 

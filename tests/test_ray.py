@@ -368,6 +368,7 @@ def test_reconstruct_on_ray(cluster, tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     assert re.search(r"Ray: 5 imgs in ", run.stderr), run.stderr[-2000:]
     assert re.search(r"Ray: 10 pairs in ", run.stderr), run.stderr[-2000:]
+    assert run.stderr.count("Ray: connected to the cluster") == 1  # one connection for both stages
     stats = json.loads((out / "stats.json").read_text())
     assert stats["status"] == "ok" and stats["model"]["registered_images"] == 5
     local = extract_features(images, tmp_path / "local.h5", FeatureConfig(resize_max=640), progress=False,

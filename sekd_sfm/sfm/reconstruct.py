@@ -24,6 +24,7 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from .. import cluster
 from .. import featurefile as ff
 from .. import matchfile as mf
 from ..errors import SekdError
@@ -243,6 +244,11 @@ def refined_name(features_name: str) -> str:
 
 def _inputs(image_dir, out, config, timer, stats, stages: dict, features, matches):
     """features, pairs file and matches: the caller's files where given, else made (or reused) in ``out``."""
+    with cluster.session(stages["executor"], stages["ray_options"]):  # one Ray connection for extract and match
+        return _extract_pair_match(image_dir, out, config, timer, stats, stages, features, matches)
+
+
+def _extract_pair_match(image_dir, out, config, timer, stats, stages: dict, features, matches):
     overwrite, num_threads, progress = stages["overwrite"], stages["num_threads"], stages["progress"]
     executor, ray_options = stages["executor"], stages["ray_options"]
     with timer("extract"):
