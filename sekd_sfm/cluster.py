@@ -278,6 +278,8 @@ def _stderr_to_log() -> Iterator[None]:
         sys.stderr.flush()
         saved = os.dup(2)
     except (OSError, ValueError):  # no usable stderr (a closed descriptor, an embedding host): nothing to hide
+        saved = None
+    if saved is None:
         yield
         return
     with tempfile.TemporaryFile() as notes:
