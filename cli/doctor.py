@@ -56,7 +56,7 @@ EXTRAS = {
 
 def _extras() -> dict[str, str]:
     """``extra ray -> "2.60.0 (--executor ray); ..."``: each optional extra, installed or the command that installs it."""
-    lines = {}
+    lines, installed = {}, set()
     for extra, (enables, packages) in EXTRAS.items():
         try:  # metadata only: importing Ray or OpenVINO takes seconds
             versions = [f"{name} {importlib.metadata.version(name)}" for name in packages]
@@ -64,19 +64,19 @@ def _extras() -> dict[str, str]:
             lines[f"extra {extra}"] = f'not installed ({enables}: pip install "sekd-sfm[{extra}]")'
             continue
         lines[f"extra {extra}"] = f"{', '.join(versions)} ({enables})"
-    if "not installed" not in lines["extra ray"]:
+        installed.add(extra)
+    if "ray" in installed:
         lines["ray cluster here"] = _ray_cluster_here()
     return lines
 
 
 def _ray_cluster_here() -> str:
     """The Ray cluster ``--ray-address auto`` would join from here, or what it does instead."""
-    from sekd_sfm.cluster import _running_cluster_address
+    from sekd_sfm.cluster import _running_cluster_address, address_variable
 
-    notes: list[str] = []
-    if os.environ.get("RAY_ADDRESS", "auto") != "auto":
-        return f"$RAY_ADDRESS={os.environ['RAY_ADDRESS']} (what --ray-address auto uses)"
-    address = _running_cluster_address(notes)
+    if address_variable():
+        return f"$RAY_ADDRESS={address_variable()} (what --ray-address auto uses)"
+    address = _running_cluster_address([])
     if address and address != "auto":
         return f"{address} (what --ray-address auto joins)"
     return "none running: --executor ray would start a local one for each run (`ray start --head` keeps one)"

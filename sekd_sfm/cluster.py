@@ -127,8 +127,14 @@ def check_executor(executor: str, options: RayOptions | None = None) -> None:
         address = (options or RayOptions()).address
         if address != "auto":
             _check_reachable(address)
-        elif os.environ.get("RAY_ADDRESS", "auto") != "auto":
-            _check_reachable(os.environ["RAY_ADDRESS"], what="$RAY_ADDRESS")
+        elif address_variable():
+            _check_reachable(address_variable(), what="$RAY_ADDRESS")
+
+
+def address_variable() -> str | None:
+    """``$RAY_ADDRESS`` when it names a cluster (what ``--ray-address auto`` uses first), else None."""
+    value = os.environ.get("RAY_ADDRESS", "")
+    return value if value not in ("", "auto") else None
 
 
 def _import_ray():
@@ -161,10 +167,9 @@ def _connect(options: RayOptions):
     if ray.is_initialized():
         return ray, False
     start = time.monotonic()
-    address, notes = options.address, []
-    if address == "auto" and os.environ.get("RAY_ADDRESS", "auto") != "auto":
-        address = os.environ["RAY_ADDRESS"]
-        _check_reachable(address, what="$RAY_ADDRESS")  # at once, where Ray would retry for minutes
+    notes: list[str] = []
+    # (check_executor, run before this by every caller, refused an unreachable $RAY_ADDRESS)
+    address = (address_variable() or "auto") if options.address == "auto" else options.address
     # Worker output stays in the cluster's logs: errors come back as results, and the
     # driver's terminal keeps one progress bar.
     init = {"log_to_driver": False, "logging_level": logging.WARNING}
