@@ -105,39 +105,37 @@ EOF
 # driver's costs are: (1) the final merge into the HDF5 file, copy against virtual, measured
 # on local1.h5's arrays repeated to 2,000 images (pipelines/bench_merge.py; the workers'
 # writing time is given too: it is spread over the workers), and (2) absorbing key rows from
-# Ray Data (identity workers returning key rows, no model: the whole driver side of a run
-# with free workers; CPU of the driver process per row, Ray's threads included).
+# the actor pool (identity workers returning key rows, no model, through cluster._stream: the
+# whole driver side of a run with free workers; CPU of the driver process per row, Ray's
+# threads included).
 python "$(dirname "$0")/bench_merge.py" "$OUT/local1.h5" --images 2000 --work "$OUT/merge" | tee -a "$REPORT"
 # ... and in tasks of 64 images, the task size of a 512-worker cluster (cluster.task_size)
 python "$(dirname "$0")/bench_merge.py" "$OUT/local1.h5" --images 2048 --task 64 --work "$OUT/merge" | tee -a "$REPORT"
 
 RAY_BACKEND_LOG_LEVEL=fatal ip netns exec "$NS" python - "127.0.0.1:$PORT" <<'EOF' | tee -a "$REPORT"
 import logging, pickle, sys, time
-import numpy as np, ray
-from sekd_sfm.cluster import _rows
+import ray
+from sekd_sfm.cluster import RayOptions, _rows, _stream
 ray.init(address=sys.argv[1], log_to_driver=False, logging_level=logging.WARNING)
-ray.data.DataContext.get_current().enable_progress_bars = False
-ray.data.DataContext.get_current().print_on_execution_start = False
-logging.getLogger("ray.data").setLevel(logging.ERROR)
 class Echo:  # a worker that answers at once with the rows a real worker sends: keys, no errors, its chunk name
     def __call__(self, batch):
         keys = [str(k) for k in batch["key"]]
         return _rows(keys, [""] * len(keys), f"{time.time_ns():020d}-12345-0123456789abcdef-000001.npz")
 n = 4000
-for per_task in (4, 32):  # the driver's cost is per task (one Ray Data block), so bigger tasks divide it
-    ds = ray.data.from_items([{"key": f"folder/image_{i:06d}.jpg"} for i in range(n)], override_num_blocks=n // per_task)
-    ds = ds.map_batches(Echo, batch_size=per_task, batch_format="numpy", compute=ray.data.ActorPoolStrategy(size=2), num_cpus=1)
+for per_task in (4, 32):  # the driver's cost is per task, so bigger tasks divide it
+    items = [{"key": f"folder/image_{i:06d}.jpg"} for i in range(n)]
     first = None; count = 0; size = 0; chunks = set()
-    for batch in ds.iter_batches(batch_size=None, batch_format="numpy"):  # as sekd_sfm.cluster._drain reads them
-        if first is None:
-            first, cpu0, skip = time.perf_counter(), time.process_time(), len(batch["key"])
-        size += len(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))
-        chunks.update(batch["chunk"])
-        count += len(batch["key"])
+    with _stream(ray, items, Echo, (), per_task, RayOptions(images_per_task=per_task)) as results:
+        for batch in results:  # as sekd_sfm.cluster._drain reads them
+            if first is None:
+                first, cpu0, skip = time.perf_counter(), time.process_time(), len(batch["key"])
+            size += len(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))
+            chunks.update(batch["chunk"])
+            count += len(batch["key"])
     t1, cpu = time.perf_counter(), time.process_time() - cpu0
     rows = count - skip
-    print(f"ray data to driver: {count} key rows ({size / count:.0f} B each) in tasks of {per_task}: {rows / (t1 - first):.0f} "
-          f"rows/s after the first block (2 echo workers, same 2 cores); driver CPU {1000 * cpu / rows:.3f} ms per row, "
+    print(f"actor pool to driver: {count} key rows ({size / count:.0f} B each) in tasks of {per_task}: {rows / (t1 - first):.0f} "
+          f"rows/s after the first task (2 echo workers, same 2 cores); driver CPU {1000 * cpu / rows:.3f} ms per row, "
           f"{1000 * cpu * per_task / rows:.2f} ms per task = {rows / cpu:.0f} rows per CPU-second of the driver")
 EOF
 echo "report: $REPORT"

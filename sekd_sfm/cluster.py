@@ -7,7 +7,8 @@ the work still to do is known. Ray (the optional extra ``sekd-sfm[ray]``) is imp
 Division of labour:
 
 * the **driver** (the ``sekd`` process) only plans and merges: it lists what is not done
-  yet, streams it through a Ray Data ``map_batches`` stage and receives, per task, only the
+  yet, hands it in tasks to a pool of actors (``_stream``: a few tasks queued at each actor,
+  the next given to whichever finishes) and receives, per task, only the
   keys done (with the chunk file holding them) and the failures: a few hundred bytes, not
   the arrays. At the end it checks that every chunk reported is visible to it and merges
   them into the HDF5 file (``featurefile.merge_parts``, as a local run does);
@@ -18,8 +19,8 @@ Division of labour:
   name + rename, the chunk name carrying the Ray node id and the PID) *before* the task
   returns, so every node must see the same files (shared storage). A key reported to the
   driver is on disk. A worker process killed mid-run (``kill -9``, a node leaving) is
-  restarted by Ray and only its unfinished tasks are retried (Ray Data's actor defaults:
-  ``max_restarts=-1``, ``max_task_retries=-1``); a torn temporary never counts as a chunk.
+  restarted by Ray and only its unfinished tasks are retried (``max_restarts=-1``,
+  ``max_task_retries=-1``); a torn temporary never counts as a chunk.
   A killed driver's rerun finds the chunks and redoes nothing finished.
   With ``RayOptions.merge="virtual"`` a task's images go to one shard file instead
   (``shards``), which the driver's merge references rather than copies.
@@ -105,9 +106,9 @@ TASK_GROWTH = 32
 def task_size(base: int, workers: int) -> int:
     """Items per task: ``base`` up to ``TASK_GROWTH`` workers, then proportionally more.
 
-    The driver spends a roughly fixed CPU time per task (~6 ms, docs/cluster.md), so the tasks
-    it receives per second, not the items, must stay bounded: growing the task with the
-    cluster keeps them at what 32 workers send (~30/s for CPU extraction at 640 px), while a
+    The driver spends a roughly fixed CPU time per task (~0.6-0.8 ms, docs/cluster.md), so the
+    tasks it receives per second, not the items, must stay bounded: growing the task with the
+    cluster keeps them at what 32 workers send (~40-70/s for CPU extraction at 640 px), while a
     worker's death still costs only one task.
     """
     return max(base, math.ceil(base * workers / TASK_GROWTH))
@@ -142,15 +143,10 @@ def _import_ray():
     # arguments in the object store) that read like failures between the progress lines; the
     # cluster's log files keep them. RAY_BACKEND_LOG_LEVEL=warning shows them here again.
     os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "fatal")
-    # Ray Data's usage statistics start a cluster-lifetime actor on a cluster's first job: one
-    # more process importing Ray while the workers start (docs/cluster.md, start-up), for
-    # statistics sekd has no use for (it never sends anything anywhere). Set it to 0 to keep them.
-    os.environ.setdefault("RAY_DATA_USAGE_DISABLED", "1")
     try:
         import ray
-        import ray.data  # the ray[data] extra, not only ray core
     except ImportError:
-        raise SekdError(f"--executor ray needs Ray (with Ray Data), which is not installed: {RAY_INSTALL}") from None
+        raise SekdError(f"--executor ray needs Ray, which is not installed: {RAY_INSTALL}") from None
     return ray
 
 
@@ -195,7 +191,6 @@ def _connect(options: RayOptions):
                 os.environ["RAY_ADDRESS"] = before
     for note in notes:
         logger.info(note)
-    _quiet_ray_data()
     resources = ray.cluster_resources()
     nodes = sum(1 for node in ray.nodes() if node.get("Alive"))
     shape = (f"{nodes} node{'s' * (nodes != 1)}, {resources.get('CPU', 0):g} CPUs"
@@ -336,15 +331,6 @@ def _check_reachable(address: str, timeout: float = 5.0, what: str = "--ray-addr
         source = "" if what == "--ray-address" else f" (from {what})"
         raise SekdError(f"no Ray cluster answers at {address}{source} ({exc.strerror or exc}); start one there with "
                         "`ray start --head --port PORT`, or check the address (`ray status` on the head node)") from None
-
-
-def _quiet_ray_data() -> None:
-    from ray.data import DataContext
-
-    ctx = DataContext.get_current()
-    ctx.enable_progress_bars = False  # the driver shows its own bar (images, rate, ETA)
-    ctx.print_on_execution_start = False
-    logging.getLogger("ray.data").setLevel(logging.ERROR)
 
 
 def _workers(ray, options: RayOptions) -> int:
@@ -626,24 +612,75 @@ class _MatchWorker:
         return _rows(keys, [""] * len(keys), chunk)
 
 
-def _stream(ray, items: list[dict], worker, args: tuple, base: int, options: RayOptions) -> Iterator[dict]:
-    """Result batches of ``worker`` over ``items`` as tasks finish (any order): columns of ``_rows``, one row per image or pair.
+@contextmanager
+def _stream(ray, items: list[dict], worker, args: tuple, base: int, options: RayOptions) -> Iterator[Iterator[dict]]:
+    """Start the actors; gives the result batches of ``worker`` over ``items`` as tasks finish (any order).
 
-    ``base``: items per task on a small cluster (see ``task_size``); ``options.images_per_task`` overrides it.
+    Each batch holds the columns of ``_rows``, one row per image or pair. ``base``: items per
+    task on a small cluster (see ``task_size``); ``options.images_per_task`` overrides it.
+    Leaving the context stops the actors, which frees their CPUs and GPUs for the next stage
+    of the same connection (``session``).
     """
     per_task = options.images_per_task or task_size(base, _workers(ray, options))
-    tasks = math.ceil(len(items) / per_task)
-    workers = min(_workers(ray, options), tasks)  # an actor with nothing to do only costs its start-up
+    tasks = [_columns(items[i:i + per_task]) for i in range(0, len(items), per_task)]
+    workers = min(_workers(ray, options), len(tasks))  # an actor with nothing to do only costs its start-up
     logger.info("Ray: %d workers x %d threads%s, %d tasks of %d", workers, options.threads_per_worker,
-                f" x {options.gpus_per_worker:g} GPU" if options.gpus_per_worker else "", tasks, per_task)
-    dataset = ray.data.from_items(items, override_num_blocks=tasks)
-    dataset = dataset.map_batches(
-        worker, fn_constructor_args=args, batch_size=per_task, batch_format="numpy",
-        compute=ray.data.ActorPoolStrategy(size=workers),
-        num_cpus=options.threads_per_worker, num_gpus=options.gpus_per_worker or None,
-    )
-    # Whole blocks as they finish (one task's rows), cheaper for the driver than row by row.
-    return dataset.iter_batches(batch_size=None, batch_format="numpy")
+                f" x {options.gpus_per_worker:g} GPU" if options.gpus_per_worker else "", len(tasks), per_task)
+    # A killed worker process is restarted (its constructor runs again) and the calls it had not
+    # answered are retried on it, as long as the run lasts: only unfinished tasks are redone.
+    actor_class = ray.remote(worker).options(num_cpus=options.threads_per_worker,
+                                             num_gpus=options.gpus_per_worker or None,
+                                             max_restarts=-1, max_task_retries=-1)
+    actors = [actor_class.remote(*args) for _ in range(workers)]
+    try:
+        yield _pool_results(ray, actors, tasks)
+    finally:
+        for actor in actors:
+            ray.kill(actor)
+
+
+def _columns(items: list[dict]) -> dict[str, np.ndarray]:
+    """One task's batch: the items' fields as columns (``{"key": array of str}``), the workers' input."""
+    return {name: np.array([item[name] for item in items], dtype=object) for name in items[0]}
+
+
+#: Tasks queued at each actor: the next one is already there when a task ends, so no actor
+#: waits for the driver between tasks.
+TASKS_IN_FLIGHT = 2
+
+#: How long the driver lets results gather before it looks at them again (seconds); far below
+#: a task's duration (0.2-2 s for CPU extraction), so no worker runs out of queued tasks.
+WAIT_SECONDS = 0.05
+
+
+def _pool_results(ray, actors: list, tasks: list[dict[str, np.ndarray]]) -> Iterator[dict]:
+    """Run ``tasks`` on ``actors`` (each called as ``actor.__call__(batch)``), yielding results as they finish.
+
+    Each actor holds ``TASKS_IN_FLIGHT`` tasks; a finished task is replaced by the next one at
+    the same actor, so faster actors take more tasks. The driver's only work is this loop
+    (~0.6 ms of its CPU per task; Ray Data's ``map_batches`` did the same at ~5-10x the driver's
+    CPU and ~1 s more start-up per run: docs/cluster.md, run M).
+    """
+    todo = iter(tasks)
+    running: dict = {}  # result reference -> the actor computing it
+
+    def give(actor) -> None:
+        batch = next(todo, None)
+        if batch is not None:
+            running[actor.__call__.remote(batch)] = actor
+
+    for _ in range(TASKS_IN_FLIGHT):
+        for actor in actors:
+            give(actor)
+    while running:
+        # One pass over the references per WAIT_SECONDS, however many tasks finished meanwhile: a
+        # pass costs the driver ~1 ms with 1,024 tasks in flight (512 workers), so its load stays
+        # flat as the cluster grows, and every worker still holds a queued task while it waits.
+        ready, _ = ray.wait(list(running), num_returns=len(running), timeout=WAIT_SECONDS)
+        for ref in ready:
+            actor = running.pop(ref)
+            give(actor)
+            yield ray.get(ref)
 
 
 def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
@@ -812,12 +849,12 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
             helper = _DriverHelper(Path(image_dir), todo, extractor, config, parts, claims, options.threads_per_worker)
         args = (str(Path(image_dir).resolve()), _driver_config(config, extractor), described, options.threads_per_worker,
                 str(Path(output).resolve()), options.merge, str(claims.resolve()) if helper else "")
-        results = _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, 4, options)
         folder = shards.shard_root(output) if options.merge == "virtual" else None
         shard_meta: dict[str, dict] = {}
         try:
-            _drain(results, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None,
-                   progress, folder, shard_meta, helper)
+            with _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, 4, options) as results:
+                _drain(results, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None,
+                       progress, folder, shard_meta, helper)
         finally:  # also when interrupted: the merge then references these shards without opening them
             if shard_meta:
                 shards.write_manifest(output, shard_meta)
@@ -849,8 +886,8 @@ def match_on_ray(features: Path, todo: list[tuple[str, str]], sizes: dict[str, i
         items = [{"pairs": json.dumps(group)} for group in batches(todo, sizes, config.max_elements)]
         args = (str(Path(features).resolve()), binary, described, config, options.threads_per_worker,
                 str(Path(output).resolve()))
-        results = _stream(ray, items, _MatchWorker, args, 1, options)
-        _drain(results, len(todo), "pair", "match (ray)", output, parts, on_error, mf.write_pair_group, progress)
+        with _stream(ray, items, _MatchWorker, args, 1, options) as results:
+            _drain(results, len(todo), "pair", "match (ray)", output, parts, on_error, mf.write_pair_group, progress)
     finally:
         if owned:
             ray.shutdown()

@@ -187,14 +187,14 @@ def test_match_on_ray_identical_to_local(cluster, local_run, tmp_path):
 
 
 def _map_workers(ns: str) -> list[int]:
-    """PIDs of Ray Data's map actors (process title ``ray::MapWorker(...)``) in the namespace."""
+    """PIDs of the extraction actors (process title ``ray::_ExtractWorker...``) in the namespace."""
     pids = []
     for pid in _namespace_pids(ns):
         try:
             title = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
         except OSError:
             continue
-        if title.startswith("ray::MapWorker"):
+        if title.startswith("ray::_ExtractWorker"):
             pids.append(pid)
     return pids
 
@@ -590,16 +590,65 @@ def test_driver_helps_only_with_cores_ray_does_not_hold(monkeypatch, nodes, opti
                                        cpu_extractor) is helps
 
 
-def test_ray_data_usage_statistics_are_off_unless_the_user_chose(monkeypatch):
-    # Ray Data's usage statistics start one more cluster-lifetime actor on a cluster's first job.
-    pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
-    from ray.data._internal.usage.collector import usage_collection_disabled
+class _ScriptedPool:
+    """Stand-in for Ray in ``cluster._pool_results``: actors whose calls finish in a given order.
 
-    from sekd_sfm import cluster
+    ``finish_order`` lists actor indices: each ``wait`` completes the oldest call of the next
+    actor in the list (so a fast actor can appear more often). Records what each actor held.
+    """
 
-    monkeypatch.delenv("RAY_DATA_USAGE_DISABLED", raising=False)
-    cluster._import_ray()
-    assert os.environ["RAY_DATA_USAGE_DISABLED"] == "1" and usage_collection_disabled()
-    monkeypatch.setenv("RAY_DATA_USAGE_DISABLED", "0")
-    cluster._import_ray()
-    assert os.environ["RAY_DATA_USAGE_DISABLED"] == "0"  # the user's choice stands
+    def __init__(self, actors: int, finish_order: list[int]):
+        self.order = list(finish_order)
+        self.queues: list[list[int]] = [[] for _ in range(actors)]
+        self.given: list[list[str]] = [[] for _ in range(actors)]
+        self.most_queued = 0
+        self.actors = [self._actor(i) for i in range(actors)]
+
+    def _actor(self, index: int):
+        pool = self
+
+        class Call:
+            @staticmethod
+            def remote(batch):
+                ref = (index, len(pool.given[index]))
+                pool.given[index].append(",".join(batch["key"]))
+                pool.queues[index].append(ref)
+                pool.most_queued = max(pool.most_queued, len(pool.queues[index]))
+                return ref
+
+        return type("Actor", (), {"__call__": Call})()
+
+    def wait(self, refs, num_returns=1, timeout=None):
+        index = self.order.pop(0)
+        ref = self.queues[index].pop(0)
+        assert ref in refs
+        return [ref], [r for r in refs if r != ref]
+
+    def get(self, ref):
+        index, call = ref
+        return {"key": self.given[index][call]}
+
+
+def test_actor_pool_gives_each_task_once_and_the_next_to_whoever_finishes():
+    from sekd_sfm.cluster import TASKS_IN_FLIGHT, _columns, _pool_results
+
+    items = [{"key": f"img{i}.jpg"} for i in range(7)]
+    tasks = [_columns(items[i:i + 2]) for i in range(0, 7, 2)] + [_columns([{"key": "last.jpg"}])]
+    assert [list(t["key"]) for t in tasks[:1]] == [["img0.jpg", "img1.jpg"]] and tasks[0]["key"].dtype == object
+    # Actor 0 finishes everything it holds, actor 1 is stuck on its first call until the end.
+    pool = _ScriptedPool(2, [0, 0, 0, 1, 1])
+    results = [r["key"] for r in _pool_results(pool, pool.actors, tasks)]
+    assert TASKS_IN_FLIGHT == 2 and pool.most_queued == 2
+    # Start: tasks 0, 2 to actor 0 and 1, 3 to actor 1 (two each); the last one goes to actor 0, which is free first.
+    assert pool.given == [["img0.jpg,img1.jpg", "img4.jpg,img5.jpg", "last.jpg"], ["img2.jpg,img3.jpg", "img6.jpg"]]
+    assert sorted(results) == sorted(",".join(t["key"]) for t in tasks)
+    assert results[:3] == ["img0.jpg,img1.jpg", "img4.jpg,img5.jpg", "last.jpg"]  # in the order they finished
+
+
+def test_actor_pool_with_more_actors_than_tasks():
+    from sekd_sfm.cluster import _columns, _pool_results
+
+    pool = _ScriptedPool(3, [0])
+    assert [r["key"] for r in _pool_results(pool, pool.actors, [_columns([{"key": "a.jpg"}])])] == ["a.jpg"]
+    assert pool.given == [["a.jpg"], [], []]
+    assert list(_pool_results(pool, pool.actors, [])) == []
