@@ -19,8 +19,8 @@ Division of labour:
   name + rename, the chunk name carrying the Ray node id and the PID) *before* the task
   returns, so every node must see the same files (shared storage). A key reported to the
   driver is on disk. A worker process killed mid-run (``kill -9``, a node leaving) is
-  restarted by Ray and only its unfinished tasks are retried (``max_restarts=-1``,
-  ``max_task_retries=-1``); a torn temporary never counts as a chunk.
+  restarted by Ray (``max_restarts=-1``) and only its unfinished tasks are redone, by
+  whichever worker is free (``_pool_results``); a torn temporary never counts as a chunk.
   A killed driver's rerun finds the chunks and redoes nothing finished.
   With ``RayOptions.merge="virtual"`` a task's images go to one shard file instead
   (``shards``), which the driver's merge references rather than copies.
@@ -47,6 +47,7 @@ import tempfile
 import threading
 import time
 import uuid
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -169,6 +170,7 @@ def _connect(options: RayOptions):
     # Worker output stays in the cluster's logs: errors come back as results, and the
     # driver's terminal keeps one progress bar.
     init = {"log_to_driver": False, "logging_level": logging.WARNING}
+    _cluster_messages_to_log(ray)
     with _stderr_to_log():
         if address == "auto":
             address = _running_cluster_address(notes)
@@ -294,6 +296,27 @@ def _stderr_to_log() -> Iterator[None]:
             text = notes.read().decode(errors="replace").strip()
             if text:
                 logger.debug("Ray's notes while connecting:\n%s", text)
+
+
+def _cluster_messages_to_log(ray) -> None:
+    """Send the cluster's error messages to the debug log instead of the driver's stdout.
+
+    Ray's driver prints what the cluster reports (a node marked dead, with the tail of its
+    raylet's log: dozens of lines) on **stdout**, where sekd writes only the output's path for
+    scripts, and between the progress lines. The worker loss itself is reported by sekd in one
+    warning line (``_pool_results``); Ray's text stays in the debug log (``SEKD_DEBUG=1``).
+    Ray calls ``ray._private.worker.print_to_stdstream`` by name for these messages; a Ray
+    without it is left as it is.
+    """
+    module = getattr(getattr(ray, "_private", None), "worker", None)
+    if module is None or not hasattr(module, "print_to_stdstream"):
+        return
+
+    def to_log(data: dict, ignore_prefix: bool = False) -> None:
+        for line in data.get("lines", []):
+            logger.debug("Ray (%s): %s", data.get("pid", "cluster"), line)
+
+    module.print_to_stdstream = to_log
 
 
 @contextmanager
@@ -626,17 +649,22 @@ def _stream(ray, items: list[dict], worker, args: tuple, base: int, options: Ray
     workers = min(_workers(ray, options), len(tasks))  # an actor with nothing to do only costs its start-up
     logger.info("Ray: %d workers x %d threads%s, %d tasks of %d", workers, options.threads_per_worker,
                 f" x {options.gpus_per_worker:g} GPU" if options.gpus_per_worker else "", len(tasks), per_task)
-    # A killed worker process is restarted (its constructor runs again) and the calls it had not
-    # answered are retried on it, as long as the run lasts: only unfinished tasks are redone.
+    # A killed worker process is restarted (its constructor runs again) whenever the cluster has
+    # room; its unfinished calls fail at once (no retries at the same actor) and go to whichever
+    # worker is free (_pool_results): a node that leaves for good holds nothing up.
     actor_class = ray.remote(worker).options(num_cpus=options.threads_per_worker,
                                              num_gpus=options.gpus_per_worker or None,
-                                             max_restarts=-1, max_task_retries=-1)
+                                             max_restarts=-1, max_task_retries=0)
     actors = [actor_class.remote(*args) for _ in range(workers)]
     try:
-        yield _pool_results(ray, actors, tasks)
+        yield _pool_results(ray, actors, tasks, _warn_worker_lost)
     finally:
         for actor in actors:
             ray.kill(actor)
+
+
+def _warn_worker_lost(reason: str) -> None:
+    tqdm.write(f"warning: a Ray worker stopped ({reason}); its unfinished tasks go to the other workers", file=sys.stderr)
 
 
 def _columns(items: list[dict]) -> dict[str, np.ndarray]:
@@ -653,34 +681,111 @@ TASKS_IN_FLIGHT = 2
 WAIT_SECONDS = 0.05
 
 
-def _pool_results(ray, actors: list, tasks: list[dict[str, np.ndarray]]) -> Iterator[dict]:
+#: Seconds between asks whether an actor whose process died is back (Ray restarts it).
+REPROBE_SECONDS = 1.0
+
+
+def _pool_results(ray, actors: list, tasks: list[dict[str, np.ndarray]],
+                  on_worker_lost: Callable[[str], None] | None = None) -> Iterator[dict]:
     """Run ``tasks`` on ``actors`` (each called as ``actor.__call__(batch)``), yielding results as they finish.
 
-    Each actor holds ``TASKS_IN_FLIGHT`` tasks; a finished task is replaced by the next one at
-    the same actor, so faster actors take more tasks. The driver's only work is this loop
-    (~0.6 ms of its CPU per task; Ray Data's ``map_batches`` did the same at ~5-10x the driver's
-    CPU and ~1 s more start-up per run: docs/cluster.md, run M).
+    An actor gets its first ``TASKS_IN_FLIGHT`` tasks once it is up (``__ray_ready__``
+    answers: an actor the cluster cannot place holds no task), then each finished task is
+    replaced by the next one at the same actor, so faster actors take more tasks. A task whose
+    actor died (its process killed, its machine gone) goes back to the front of the queue, in
+    order, for the actors that are up, and the dead actor gets tasks again once Ray has
+    restarted it (asked every ``REPROBE_SECONDS``); ``on_worker_lost(reason)`` is told each
+    time. While no actor is up the run waits (one warning), as Ray waits for resources. The driver's only work is this
+    loop (~0.6 ms of its CPU per task; Ray Data's ``map_batches`` did the same at ~5-10x the
+    driver's CPU and ~1 s more start-up per run: docs/cluster.md, run M).
     """
-    todo = iter(tasks)
-    running: dict = {}  # result reference -> the actor computing it
+    return _ActorPool(ray, actors, tasks, on_worker_lost).results()
 
-    def give(actor) -> None:
-        batch = next(todo, None)
-        if batch is not None:
-            running[actor.__call__.remote(batch)] = actor
 
-    for _ in range(TASKS_IN_FLIGHT):
-        for actor in actors:
-            give(actor)
-    while running:
-        # One pass over the references per WAIT_SECONDS, however many tasks finished meanwhile: a
-        # pass costs the driver ~1 ms with 1,024 tasks in flight (512 workers), so its load stays
-        # flat as the cluster grows, and every worker still holds a queued task while it waits.
-        ready, _ = ray.wait(list(running), num_returns=len(running), timeout=WAIT_SECONDS)
-        for ref in ready:
-            actor = running.pop(ref)
-            give(actor)
-            yield ray.get(ref)
+class _ActorPool:
+    """The state of ``_pool_results``: which actor holds which task, which are up, which restart."""
+
+    def __init__(self, ray, actors: list, tasks: list[dict[str, np.ndarray]],
+                 on_worker_lost: Callable[[str], None] | None):
+        from ray.exceptions import RayActorError
+
+        self.ray, self.on_worker_lost, self.lost = ray, on_worker_lost, RayActorError
+        self.todo = deque(tasks)
+        self.running: dict = {}  # result reference -> (actor computing it, its batch)
+        self.load: dict = {}  # actor that is up -> tasks it holds
+        self.starting = {actor.__ray_ready__.remote(): actor for actor in actors}  # asked whether it is up
+        self.ask_again: dict = {}  # actor not up yet -> monotonic time to ask again
+
+    def results(self) -> Iterator[dict]:
+        waited = False
+        # Ends when every task is done. A lost actor is asked again and again whether Ray has
+        # restarted it (max_restarts=-1): while none is up, the run waits, as Ray does for resources.
+        while self.todo or self.running:
+            self._ask_again()
+            waiting = [*self.running, *self.starting]
+            if not waiting:
+                time.sleep(WAIT_SECONDS)
+                continue
+            # One pass over the references per WAIT_SECONDS, however many tasks finished meanwhile:
+            # a pass costs the driver ~1 ms with 1,024 tasks in flight (512 workers), so its load
+            # stays flat as the cluster grows, and every worker still holds a queued task meanwhile.
+            ready, _ = self.ray.wait(waiting, num_returns=len(waiting), timeout=WAIT_SECONDS)
+            returned = []  # tasks of actors that died, in their order
+            for ref in ready:
+                if ref in self.starting:
+                    self._on_ready(ref)
+                    continue
+                actor, batch = self.running.pop(ref)
+                if actor in self.load:
+                    self.load[actor] = max(0, self.load[actor] - 1)
+                try:
+                    result = self.ray.get(ref)
+                except self.lost as exc:
+                    returned.append(batch)  # only this task is redone; chunks already written stay
+                    self._on_lost(actor, _first_line(exc))
+                    continue
+                self._give(actor)
+                yield result
+            if returned:
+                self.todo.extendleft(reversed(returned))
+                for actor in list(self.load):  # the actors that are up take them at once
+                    self._give(actor)
+            if self.ask_again and not self.load and not self.running and not waited:  # lost them all
+                waited = True
+                logger.warning("no Ray worker is up: waiting for the cluster to start or restart them "
+                               "(Ctrl-C keeps every finished item)")
+
+    def _give(self, actor) -> None:
+        """Fill ``actor`` up to ``TASKS_IN_FLIGHT`` tasks from the queue."""
+        while self.todo and self.load[actor] < TASKS_IN_FLIGHT:
+            batch = self.todo.popleft()
+            self.running[actor.__call__.remote(batch)] = (actor, batch)
+            self.load[actor] += 1
+
+    def _on_ready(self, ref) -> None:
+        actor = self.starting.pop(ref)
+        try:
+            self.ray.get(ref)
+        except self.lost:  # not back yet (Ray restarts it when the cluster has room)
+            self.ask_again[actor] = time.monotonic() + REPROBE_SECONDS
+            return
+        self.load[actor] = 0
+        self._give(actor)
+
+    def _on_lost(self, actor, reason: str) -> None:
+        if actor not in self.load:
+            return  # another task of the same loss
+        del self.load[actor]
+        self.ask_again[actor] = time.monotonic() + REPROBE_SECONDS
+        if self.on_worker_lost is not None:
+            self.on_worker_lost(reason)
+
+    def _ask_again(self) -> None:
+        now = time.monotonic()
+        for actor, when in list(self.ask_again.items()):
+            if when <= now:
+                del self.ask_again[actor]
+                self.starting[actor.__ray_ready__.remote()] = actor
 
 
 def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
@@ -741,13 +846,13 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
     if helper is not None and helper.done:
         logger.info("Ray: the driver extracted %d of the %d images itself while the workers started; the workers "
                     "the other %d", helper.done, total, done)
-    if first is not None:
+    if first is not None and done:
         cpu = time.process_time() - cpu0
-        logger.info("Ray: %d %ss in %.1f s (first after %.1f s: worker start-up; then %.2f %s/s); driver received "
+        rate = f"; then {(done - 1) / (end - first):.2f} {unit}/s" if done > 1 and end > first else ""
+        logger.info("Ray: %d %ss in %.1f s (first after %.1f s: worker start-up%s); driver received "
                     "%.0f B per %s, %d chunks; driver CPU %.2f ms per %s (%.1f%% of a core)",
-                    done, unit, end - start, first - start, (done - 1) / max(end - first, 1e-9), unit,
-                    received / max(done, 1), unit, len(chunks), 1000 * cpu / max(done, 1), unit,
-                    100 * cpu / max(end - first, 1e-9))
+                    done, unit, end - start, first - start, rate, received / done, unit, len(chunks),
+                    1000 * cpu / done, unit, 100 * cpu / max(end - first, 1e-3))
 
 
 def _check_visible(folder: Path, chunks: set[str], wait: float = 10.0) -> None:
@@ -834,7 +939,7 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
         if strict:
             raise SekdError(f"{error} (--strict)")
         failed.append(key)
-        tqdm.write(f"warning: {error}; skipped")
+        tqdm.write(f"warning: {error}; skipped", file=sys.stderr)
 
     claims = _claims_path(output)
     import torch

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -169,7 +170,7 @@ def _run(extractor, image_dir, todo, config, parts, output, strict, progress) ->
                     if strict:
                         raise SekdError(f"{exc} (--strict)") from exc
                     failed.append(key)
-                    tqdm.write(f"warning: {exc}; skipped")
+                    tqdm.write(f"warning: {exc}; skipped", file=sys.stderr)
                 bar.update(1)
     except KeyboardInterrupt:
         bar.close()

@@ -154,6 +154,16 @@ def test_corrupt_image_skipped_and_counted(images, tmp_path, shared):
         extract_features(images, tmp_path / "g.h5", FeatureConfig(feature="sift"), strict=True, progress=False)
 
 
+def test_skip_warnings_go_to_stderr_and_stdout_holds_only_the_output(images, tmp_path):
+    """Scripts read the output's path from stdout (``F=$(sekd extract ...)``): warnings must not land there."""
+    (images / "broken.jpg").write_bytes(b"\xff\xd8 not really")
+    out = tmp_path / "f.h5"
+    result = CliRunner().invoke(sekd, ["extract", str(images), "-o", str(out), "--feature", "sift", "--no-progress"])
+    assert result.exit_code == 0, result.output
+    assert result.stdout == f"{out}\n"
+    assert "warning: " in result.stderr and "broken.jpg" in result.stderr and "skipped" in result.stderr
+
+
 def test_mismatched_configuration_is_refused(images, tmp_path):
     out = extract_features(images, tmp_path / "f.h5", FeatureConfig(feature="sift", max_keypoints=100), progress=False)
     with pytest.raises(SekdError, match="different configuration"):

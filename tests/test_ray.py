@@ -247,6 +247,70 @@ def test_worker_killed_mid_run_is_redone(cluster, photos_320, tmp_path):
     assert not Path(f"{tmp_path / 'ray.h5'}.parts").exists()  # every chunk merged, no torn temporary left
 
 
+def _workers_of(raylet: int) -> list[tuple[int, bool]]:
+    """``(PID, busy)`` of the extraction workers a raylet started (its children); busy = running a task."""
+    found = []
+    for child in Path(f"/proc/{raylet}/task/{raylet}/children").read_text().split():
+        try:
+            title = Path(f"/proc/{child}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if title.startswith(b"ray::_ExtractWorker"):
+            found.append((int(child), title.startswith(b"ray::_ExtractWorker.__call__")))
+    return found
+
+
+def test_node_leaving_mid_run_its_tasks_go_to_the_others(cluster, photos_320, tmp_path):
+    """A third node joins, then its worker and raylet are killed mid-run (a machine leaving for
+    good): the tasks its worker held are done by the other two, the file is complete and identical, one
+    warning line says so, and nothing of Ray's reaches stdout (which holds only the output)."""
+    ns, address = cluster
+    name = f"leaving{os.getpid()}"
+    before = set(_namespace_pids(ns))
+    joined = _sh("ip", "netns", "exec", ns, "ray", "start", "--address", address, "--num-cpus", "1",
+                 "--object-store-memory", str(200 << 20), "--disable-usage-stats", "--node-name", name)
+    node = set(_namespace_pids(ns)) - before  # the third node's processes (no job runs yet)
+    try:
+        assert joined.returncode == 0, joined.stderr[-2000:]
+        raylet = next(pid for pid in node
+                      if f"--node-name={name}".encode() in Path(f"/proc/{pid}/cmdline").read_bytes())
+        images, local = photos_320
+        out = tmp_path / "ray.h5"
+        # Tasks of one image, so the third node's worker surely holds some when the machine goes.
+        script = ("import sys\nfrom sekd_sfm.extract import extract_features\nfrom sekd_sfm.features import FeatureConfig\n"
+                  "from sekd_sfm.cluster import RayOptions\n"
+                  f"print(extract_features({str(images)!r}, {str(out)!r}, FeatureConfig(resize_max=320, max_keypoints=300), "
+                  f"executor='ray', ray_options=RayOptions(address={address!r}, images_per_task=1)))\n")
+        driver = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-c", script],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        def machine_off() -> int | None:  # once its worker computes: the workers, then (by _kill_when) the raylet
+            workers = _workers_of(raylet)
+            if not any(busy for _, busy in workers):
+                return None
+            for pid, _ in workers:
+                os.kill(pid, signal.SIGKILL)
+            return raylet
+
+        killed, seen = _kill_when(driver, 24, machine_off)
+        stdout, stderr = driver.communicate(timeout=240)
+        assert killed is not None, f"the run ended before the node could be stopped (last progress {seen}/24)"
+        assert driver.returncode == 0, stderr.decode(errors="replace")[-3000:]
+        assert stdout.decode() == f"{out}\n"
+        assert "warning: a Ray worker stopped" in stderr.decode(errors="replace")
+        assert _contents(out) == local
+    finally:
+        for pid in node:  # the rest of the third node (its agents), by PID
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        # The next tests expect two nodes: wait until Ray has marked the third one dead.
+        wait = ("import ray, sys, time\nray.init(address=sys.argv[1], logging_level='ERROR')\n"
+                "deadline = time.monotonic() + 90\n"
+                "while sum(n['Alive'] for n in ray.nodes()) > 2 and time.monotonic() < deadline:\n    time.sleep(1)\n")
+        _sh("ip", "netns", "exec", ns, sys.executable, "-c", wait, address, timeout=120)
+
+
 def test_driver_killed_mid_run_resumes_without_redoing(cluster, photos_320, tmp_path):
     """kill -9 of the driver: the chunks the workers wrote stay, and the same command computes only the rest."""
     from sekd_sfm import featurefile as ff
@@ -591,15 +655,21 @@ def test_driver_helps_only_with_cores_ray_does_not_hold(monkeypatch, nodes, opti
 
 
 class _ScriptedPool:
-    """Stand-in for Ray in ``cluster._pool_results``: actors whose calls finish in a given order.
+    """Stand-in for Ray in ``cluster._pool_results``: actors whose calls end as a script says.
 
-    ``finish_order`` lists actor indices: each ``wait`` completes the oldest call of the next
-    actor in the list (so a fast actor can appear more often). Records what each actor held.
+    Each ``wait`` plays the next event: ``("done", i)`` finishes actor i's oldest call;
+    ``("die", i)`` fails every call actor i holds (as Ray does when its process dies);
+    ``("back", i)`` / ``("lost", i)``: its ``__ray_ready__`` answers (up) / fails (still
+    restarting); while actor i has not been asked yet, the wait times out with nothing ready.
+    Records the keys each actor was given, and the most calls one held at once.
     """
 
-    def __init__(self, actors: int, finish_order: list[int]):
-        self.order = list(finish_order)
-        self.queues: list[list[int]] = [[] for _ in range(actors)]
+    def __init__(self, actors: int, events: list[tuple[str, int]]):
+        self.events = list(events)
+        self.calls: list[list[object]] = [[] for _ in range(actors)]  # refs each actor holds
+        self.probes: dict[int, object] = {}
+        self.batches: dict[object, str] = {}
+        self.failed: set[object] = set()
         self.given: list[list[str]] = [[] for _ in range(actors)]
         self.most_queued = 0
         self.actors = [self._actor(i) for i in range(actors)]
@@ -610,45 +680,108 @@ class _ScriptedPool:
         class Call:
             @staticmethod
             def remote(batch):
-                ref = (index, len(pool.given[index]))
-                pool.given[index].append(",".join(batch["key"]))
-                pool.queues[index].append(ref)
-                pool.most_queued = max(pool.most_queued, len(pool.queues[index]))
+                ref = object()
+                pool.batches[ref] = ",".join(batch["key"])
+                pool.given[index].append(pool.batches[ref])
+                pool.calls[index].append(ref)
+                pool.most_queued = max(pool.most_queued, len(pool.calls[index]))
                 return ref
 
-        return type("Actor", (), {"__call__": Call})()
+        class Ready:
+            @staticmethod
+            def remote():
+                pool.probes[index] = object()
+                return pool.probes[index]
+
+        return type("Actor", (), {"__call__": Call, "__ray_ready__": Ready})()
 
     def wait(self, refs, num_returns=1, timeout=None):
-        index = self.order.pop(0)
-        ref = self.queues[index].pop(0)
-        assert ref in refs
-        return [ref], [r for r in refs if r != ref]
+        what, index = self.events[0]
+        if what in ("back", "lost") and index not in self.probes:
+            return [], refs  # not asked yet: nothing happens within the timeout
+        self.events.pop(0)
+        if what == "done":
+            ready = [self.calls[index].pop(0)]
+        elif what == "die":
+            ready, self.calls[index] = self.calls[index], []
+            self.failed.update(ready)
+        else:
+            ready = [self.probes.pop(index)]
+            if what == "lost":
+                self.failed.update(ready)
+        assert all(ref in refs for ref in ready)
+        return ready, [r for r in refs if r not in ready]
 
     def get(self, ref):
-        index, call = ref
-        return {"key": self.given[index][call]}
+        from ray.exceptions import ActorDiedError
+
+        if ref in self.failed:
+            raise ActorDiedError()
+        return {"key": self.batches[ref]} if ref in self.batches else None  # None: a __ray_ready__ answer
+
+
+def _tasks(count: int, size: int) -> list[dict]:
+    from sekd_sfm.cluster import _columns
+
+    items = [{"key": f"img{i}.jpg"} for i in range(count)]
+    return [_columns(items[i:i + size]) for i in range(0, count, size)]
 
 
 def test_actor_pool_gives_each_task_once_and_the_next_to_whoever_finishes():
-    from sekd_sfm.cluster import TASKS_IN_FLIGHT, _columns, _pool_results
+    pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
+    from sekd_sfm.cluster import TASKS_IN_FLIGHT, _pool_results
 
-    items = [{"key": f"img{i}.jpg"} for i in range(7)]
-    tasks = [_columns(items[i:i + 2]) for i in range(0, 7, 2)] + [_columns([{"key": "last.jpg"}])]
-    assert [list(t["key"]) for t in tasks[:1]] == [["img0.jpg", "img1.jpg"]] and tasks[0]["key"].dtype == object
-    # Actor 0 finishes everything it holds, actor 1 is stuck on its first call until the end.
-    pool = _ScriptedPool(2, [0, 0, 0, 1, 1])
+    tasks = _tasks(9, 2)  # 4 tasks of 2 and one of 1
+    assert list(tasks[0]["key"]) == ["img0.jpg", "img1.jpg"] and tasks[0]["key"].dtype == object
+    # Both actors start; actor 0 finishes everything it holds, actor 1 is stuck on its first call until the end.
+    pool = _ScriptedPool(2, [("back", 0), ("back", 1), ("done", 0), ("done", 0), ("done", 0), ("done", 1), ("done", 1)])
     results = [r["key"] for r in _pool_results(pool, pool.actors, tasks)]
     assert TASKS_IN_FLIGHT == 2 and pool.most_queued == 2
-    # Start: tasks 0, 2 to actor 0 and 1, 3 to actor 1 (two each); the last one goes to actor 0, which is free first.
-    assert pool.given == [["img0.jpg,img1.jpg", "img4.jpg,img5.jpg", "last.jpg"], ["img2.jpg,img3.jpg", "img6.jpg"]]
+    # Two tasks to each actor as it comes up; the last one to actor 0, free first.
+    assert pool.given == [["img0.jpg,img1.jpg", "img2.jpg,img3.jpg", "img8.jpg"], ["img4.jpg,img5.jpg", "img6.jpg,img7.jpg"]]
+    assert results[:3] == ["img0.jpg,img1.jpg", "img2.jpg,img3.jpg", "img8.jpg"]  # in the order they finished
     assert sorted(results) == sorted(",".join(t["key"]) for t in tasks)
-    assert results[:3] == ["img0.jpg,img1.jpg", "img4.jpg,img5.jpg", "last.jpg"]  # in the order they finished
 
 
 def test_actor_pool_with_more_actors_than_tasks():
-    from sekd_sfm.cluster import _columns, _pool_results
+    pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
+    from sekd_sfm.cluster import _pool_results
 
-    pool = _ScriptedPool(3, [0])
-    assert [r["key"] for r in _pool_results(pool, pool.actors, [_columns([{"key": "a.jpg"}])])] == ["a.jpg"]
-    assert pool.given == [["a.jpg"], [], []]
+    pool = _ScriptedPool(3, [("back", 0), ("done", 0)])  # actors 1 and 2 never come up: no task waits for them
+    assert [r["key"] for r in _pool_results(pool, pool.actors, _tasks(1, 4))] == ["img0.jpg"]
+    assert pool.given == [["img0.jpg"], [], []]
     assert list(_pool_results(pool, pool.actors, [])) == []
+
+
+def test_actor_pool_gives_a_dead_workers_tasks_to_the_others_then_takes_it_back(monkeypatch):
+    pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
+    from sekd_sfm import cluster
+    from sekd_sfm.cluster import _pool_results
+
+    monkeypatch.setattr(cluster, "REPROBE_SECONDS", 0.0)
+
+    lost = []
+    pool = _ScriptedPool(2, [("back", 0), ("back", 1), ("die", 1), ("done", 0), ("done", 0), ("back", 1),
+                             ("done", 0), ("done", 1), ("done", 0), ("done", 1)])
+    results = [r["key"] for r in _pool_results(pool, pool.actors, _tasks(6, 1), lost.append)]
+    assert sorted(results) == [f"img{i}.jpg" for i in range(6)]  # every task done once
+    assert len(lost) == 1  # one warning for the actor, though it held two tasks
+    # Actor 1 held img2 and img3 when it died: they went to the front of the queue, in order, and
+    # actor 0 took them; once restarted, actor 1 took the next two.
+    assert pool.given == [["img0.jpg", "img1.jpg", "img2.jpg", "img3.jpg"], ["img2.jpg", "img3.jpg", "img4.jpg", "img5.jpg"]]
+
+
+def test_actor_pool_waits_for_its_only_worker_to_come_back(monkeypatch, caplog):
+    pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
+    from sekd_sfm import cluster
+
+    monkeypatch.setattr(cluster, "REPROBE_SECONDS", 0.0)
+    pool = _ScriptedPool(1, [("back", 0), ("done", 0), ("die", 0), ("lost", 0), ("lost", 0), ("back", 0),
+                             ("done", 0), ("done", 0), ("done", 0), ("done", 0)])
+    with caplog.at_level("WARNING", logger="sekd"):
+        results = [r["key"] for r in cluster._pool_results(pool, pool.actors, _tasks(5, 1))]
+    assert sorted(results) == [f"img{i}.jpg" for i in range(5)]
+    # It held img1 and img2 when it died; back after two asks, it takes them again, then the rest.
+    assert pool.given == [["img0.jpg", "img1.jpg", "img2.jpg", "img1.jpg", "img2.jpg", "img3.jpg", "img4.jpg"]]
+    assert [r.getMessage() for r in caplog.records].count(
+        "no Ray worker is up: waiting for the cluster to start or restart them (Ctrl-C keeps every finished item)") == 1
