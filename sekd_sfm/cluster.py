@@ -644,9 +644,10 @@ def _stream(ray, items: list[dict], worker, args: tuple, base: int, options: Ray
     Leaving the context stops the actors, which frees their CPUs and GPUs for the next stage
     of the same connection (``session``).
     """
-    per_task = options.images_per_task or task_size(base, _workers(ray, options))
+    fit = _workers(ray, options)
+    per_task = options.images_per_task or task_size(base, fit)
     tasks = [_columns(items[i:i + per_task]) for i in range(0, len(items), per_task)]
-    workers = min(_workers(ray, options), len(tasks))  # an actor with nothing to do only costs its start-up
+    workers = min(fit, len(tasks))  # an actor with nothing to do only costs its start-up
     logger.info("Ray: %d workers x %d threads%s, %d tasks of %d", workers, options.threads_per_worker,
                 f" x {options.gpus_per_worker:g} GPU" if options.gpus_per_worker else "", len(tasks), per_task)
     # A killed worker process is restarted (its constructor runs again) whenever the cluster has
