@@ -81,7 +81,9 @@ class RayOptions:
     CPU per task); None = ``task_size(4, workers)``. Matching tasks are ``task_size(1,
     workers)`` of the local run's pair batches. ``driver_helps``: whether the driver extracts
     images itself while the workers start (``_DriverHelper``); None = only when its machine has
-    cores no Ray node on it was given (``_driver_should_help``).
+    cores no Ray node on it was given (``_driver_should_help``). ``merge_while_running``: whether
+    the driver copies each task's results into the output as they arrive (``merge="copy"``);
+    None = on the same condition (``driver_merges_while_running``).
     """
 
     address: str = "auto"
@@ -91,6 +93,7 @@ class RayOptions:
     images_per_task: int | None = None
     merge: str = "copy"
     driver_helps: bool | None = None
+    merge_while_running: bool | None = None
 
 
 #: How extracted features reach ``features.h5``: ``copy`` = the arrays are copied in (one
@@ -791,10 +794,13 @@ class _ActorPool:
 
 def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Path, parts: ff.PartStore,
            on_error: Callable[[str, str], None], write_group, progress: bool, folder: Path | None = None,
-           shard_meta: dict[str, dict] | None = None, helper: _DriverHelper | None = None) -> None:
+           shard_meta: dict[str, dict] | None = None, helper: _DriverHelper | None = None,
+           merge: ff.Merge | None = None) -> None:
     """Count the keys the workers report as written, report failures, then check their chunks are visible here.
 
     ``shard_meta`` collects the workers' shard descriptions (``chunk -> key -> arrays``).
+    ``merge``: a merge begun for this run; each reported chunk is written into it at once, so
+    the driver copies while the workers compute, instead of all of it after them.
 
     Logs the driver's load: the bytes it received per result, and the CPU time of the driver
     process (its Ray threads included) per result, i.e. how many results per second it could
@@ -827,6 +833,8 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
             fresh = int(sum(1 for chunk in batch["chunk"] if chunk != BY_DRIVER))
             done += fresh
             bar.update(fresh)
+            if merge is not None:
+                merge.add(parts.root / str(c) for c in set(batch["chunk"]) if c and c != BY_DRIVER)
         if helper is not None:
             helper.finish()  # a run so short that no worker result came back
             for key, error in helper.errors:
@@ -836,7 +844,7 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
         bar.close()
         if helper is not None:
             helper.finish(reraise=False)  # its saved images go into this merge
-        saved = ff.merge_parts(output, parts, write_group=write_group)
+        saved = merge.finish() if merge is not None else ff.merge_parts(output, parts, write_group=write_group)
         raise Interrupted(f"interrupted: {saved} more {'images' if unit == 'img' else unit + 's'} saved in {output}; "
                           "run the same command again to resume") from None
     finally:
@@ -844,6 +852,9 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
         if helper is not None:  # a failure (a worker's fatal error, no cluster) stops the helper before it surfaces
             helper.finish(reraise=False)
     end = time.monotonic()
+    if merge is not None:
+        logger.info("Ray: %d of the %d %ss were in the output's copy when the workers finished", len(merge.written),
+                    done, unit)
     if helper is not None and helper.done:
         logger.info("Ray: the driver extracted %d of the %d images itself while the workers started; the workers "
                     "the other %d", helper.done, total, done)
@@ -897,6 +908,29 @@ def _free_cores_here(ray) -> float:
     return usable_cores() - given
 
 
+def driver_merges_while_running(options: RayOptions | None = None) -> bool:
+    """Whether the driver writes the workers' chunks into the output as they arrive (``featurefile.Merge``).
+
+    With ``--ray-merge copy``, and only where the driver's machine has a core that no Ray node
+    on it was given (a login node, a head node started with ``--num-cpus 0``): there the copy
+    overlaps the workers' work, and the merge left at the end is the last tasks' chunks. Where
+    Ray holds every core (a one-machine cluster), copying during the run slowed the workers by
+    more than it saved at the end (docs/cluster.md, run M). Call it connected (``session``).
+    """
+    options = options or RayOptions()
+    ray = _import_ray()
+    return ray.is_initialized() and _merges_while_running(ray, options)
+
+
+def _merges_while_running(ray, options: RayOptions) -> bool:
+    if options.merge != "copy" or options.merge_while_running is False:
+        return False
+    merges = options.merge_while_running is True or _free_cores_here(ray) >= 1
+    if merges:
+        logger.info("Ray: the driver copies the workers' results into the output as they arrive")
+    return merges
+
+
 def _driver_should_help(ray, options: RayOptions, extractor) -> bool:
     """Whether the driver extracts images itself while the workers start (``_DriverHelper``).
 
@@ -926,10 +960,11 @@ def _driver_config(config, extractor):
 
 def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, extractor, parts: ff.PartStore,
                    output: Path, *, strict: bool = False, progress: bool = True,
-                   options: RayOptions | None = None) -> list[str]:
+                   options: RayOptions | None = None, merge: ff.Merge | None = None) -> list[str]:
     """Extract the images ``todo`` (keys below ``image_dir``) on Ray into ``parts``; returns the unreadable keys.
 
     ``described`` is the driver's ``extract.describe_config``; every worker must build the same.
+    ``merge``: a merge of the output begun for this run (``--ray-merge copy``), fed as chunks arrive.
     """
     options = options or RayOptions()
     failed: list[str] = []
@@ -960,7 +995,7 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
         try:
             with _stream(ray, [{"key": key} for key in todo], _ExtractWorker, args, 4, options) as results:
                 _drain(results, len(todo), "img", f"extract {config.feature} (ray)", output, parts, on_error, None,
-                       progress, folder, shard_meta, helper)
+                       progress, folder, shard_meta, helper, merge)
         finally:  # also when interrupted: the merge then references these shards without opening them
             if shard_meta:
                 shards.write_manifest(output, shard_meta)

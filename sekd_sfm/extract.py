@@ -145,11 +145,21 @@ def _extract(image_dir: Path, output: Path, config: FeatureConfig, overwrite: bo
     done = set(ff.list_keys(output)) | parts.keys() | shards.all_keys(output)
     todo = [k for k in keys if k not in done]
     logger.info("%s: %d images, %d already done, %d to extract", image_dir, len(keys), len(keys) - len(todo), len(todo))
-    failed = (_run(extractor, image_dir, todo, config, parts, output, strict, progress) if executor == "local" else
-              cluster.extract_on_ray(image_dir, todo, config, described, extractor, parts, output, strict=strict,
-                                     progress=progress, options=ray_options))
-    parts.flush()  # on disk before the merge: a merge that fails or is killed loses nothing
-    ff.finish_run(output, parts, {"failed_images": ff.json_attr(failed)}, what="images")
+    merge = None
+    try:
+        if executor == "local":
+            failed = _run(extractor, image_dir, todo, config, parts, output, strict, progress)
+        else:
+            with cluster.session(executor if todo else "local", ray_options):  # no connection for nothing to do
+                if todo and cluster.driver_merges_while_running(ray_options):
+                    merge = ff.Merge(output, parts)  # fed with the workers' chunks as they arrive
+                failed = cluster.extract_on_ray(image_dir, todo, config, described, extractor, parts, output,
+                                                strict=strict, progress=progress, options=ray_options, merge=merge)
+        parts.flush()  # on disk before the merge: a merge that fails or is killed loses nothing
+        ff.finish_run(output, parts, {"failed_images": ff.json_attr(failed)}, what="images", merge=merge)
+    finally:
+        if merge is not None:
+            merge.discard()  # after a failure: the file as it was, the chunks for the next run
     # Parts of a killed run are merged too, so count the file, not this run's images.
     total = len(ff.list_keys(output))
     logger.info("%s: %d images written this run, %d failed, %d in the file", output, total - len(done), len(failed), total)

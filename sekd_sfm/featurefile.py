@@ -43,7 +43,7 @@ import os
 import shutil
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import h5py
@@ -362,38 +362,83 @@ def merge_parts(path: Path, parts: PartStore, attrs: dict | None = None, write_g
     chunks (memory: one chunk). Shards of ``<path>.shards/`` not referenced yet are referenced
     by virtual datasets (``shards``). Returns the number of parts merged and shard items referenced.
     """
-    write_group = write_group or write_image_group
     parts.flush()
     parts.recover()
-    chunks = parts.chunks()
-    shard_files = shards.shard_files(path)
-    described = shards.describe_all(path) if shard_files else {}  # read once: the check and the links use it
-    unlinked = shards.keys_of(described) - set(list_keys(path))
-    if not chunks and not unlinked and _has_attrs(path, attrs or {}):
+    described = shards.describe_all(path) if shards.shard_files(path) else {}  # read once: the check and the links
+    if not parts.chunks() and not shards.keys_of(described) - set(list_keys(path)) and _has_attrs(path, attrs or {}):
         parts.drop([])
         return 0
-    merge_id = uuid.uuid4().hex
-    tmp = temp_name(path)
-    count = 0
+    merge = Merge(path, parts, write_group)
     try:
-        shutil.copyfile(path, tmp)
-        with h5py.File(tmp, "a") as f:
-            for key, arrays in parts.items(chunks):
-                write_group(f, key, arrays)
-                count += 1
-            if unlinked:
-                count += shards.link_shards(f, path, set(_keys_of(f)), described)
-                f.attrs[SHARDS] = json.dumps({"folder": shards.shard_root(path).name, "files": len(shard_files)})
-            f.attrs.update(attrs or {})
-            f.attrs["modified"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-            f.attrs[MERGE_ID] = merge_id
-        if chunks:
-            _write_atomic(parts.root / MERGING, json.dumps({"merge_id": merge_id, "chunks": [c.name for c in chunks]}))
-        fsync_replace(tmp, path)
+        return merge.finish(attrs, described)
     finally:
-        tmp.unlink(missing_ok=True)
-    parts.drop(chunks)
-    return count
+        merge.discard()
+
+
+class Merge:
+    """``merge_parts`` begun while the run goes on: chunks are written as they are reported.
+
+    Opens a temporary copy of the file; ``add`` writes finished chunks' items into it (a run
+    on Ray calls it as the workers report them, so the merge's copying overlaps their work);
+    ``finish`` adds whatever is left (chunks, shards, ``attrs``) and renames the copy into place
+    exactly as ``merge_parts`` does (``MERGING`` marker, fsync, rename, then the chunks go).
+    Until then the file is untouched: ``discard`` (or a kill: the copy is a stale temporary the
+    next run removes) leaves it and every chunk as they were, for the next run to merge.
+    A key written twice keeps the arrays written last.
+    """
+
+    def __init__(self, path: Path, parts: PartStore, write_group: WriteGroup | None = None):
+        self.path, self.parts, self.write_group = Path(path), parts, write_group or write_image_group
+        parts.recover()  # a killed merge's leftovers first: its chunks may already be in the file
+        self.tmp = temp_name(self.path)
+        shutil.copyfile(self.path, self.tmp)
+        self.file: h5py.File | None = h5py.File(self.tmp, "a")
+        self.merged: set[Path] = set()
+        self.written: set[str] = set()
+
+    def add(self, chunks: Iterable[Path]) -> None:
+        """Write these chunks' items into the copy; chunks not visible here yet are left for ``finish``."""
+        fresh = sorted(c for c in chunks if c not in self.merged and c.exists())
+        for key, arrays in self.parts.items(fresh):
+            self.write_group(self.file, key, arrays)
+            self.written.add(key)
+        self.merged.update(fresh)
+
+    def finish(self, attrs: dict | None = None, described: dict[str, dict] | None = None) -> int:
+        """Add every chunk and shard not merged yet and ``attrs``, then replace the file; returns the items merged.
+
+        ``described``: ``shards.describe_all(path)`` if the caller has read it already.
+        """
+        self.parts.flush()
+        self.add(self.parts.chunks())
+        f, count = self.file, len(self.written)
+        shard_files = shards.shard_files(self.path)
+        if described is None:
+            described = shards.describe_all(self.path) if shard_files else {}
+        present = set(_keys_of(f))
+        if shards.keys_of(described) - present:
+            count += shards.link_shards(f, self.path, present, described)
+            f.attrs[SHARDS] = json.dumps({"folder": shards.shard_root(self.path).name, "files": len(shard_files)})
+        merge_id = uuid.uuid4().hex
+        f.attrs.update(attrs or {})
+        f.attrs["modified"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        f.attrs[MERGE_ID] = merge_id
+        f.close()
+        self.file = None
+        chunks = sorted(self.merged)
+        if chunks:
+            _write_atomic(self.parts.root / MERGING, json.dumps({"merge_id": merge_id, "chunks": [c.name for c in chunks]}))
+        fsync_replace(self.tmp, self.path)
+        self.parts.drop(chunks)
+        return count
+
+    def discard(self) -> None:
+        """Close and delete the copy (nothing after ``finish``): the file and the chunks stay as they were."""
+        if self.file is not None:
+            with contextlib.suppress(Exception):
+                self.file.close()
+            self.file = None
+        self.tmp.unlink(missing_ok=True)
 
 
 def _has_attrs(path: Path, attrs: dict) -> bool:
@@ -403,10 +448,11 @@ def _has_attrs(path: Path, attrs: dict) -> bool:
 
 
 def finish_run(path: Path, parts: PartStore, attrs: dict | None = None, write_group: WriteGroup | None = None,
-               what: str = "items") -> int:
-    """``merge_parts`` at the end of a run; Ctrl-C / SIGTERM during it becomes ``Interrupted`` (parts kept)."""
+               what: str = "items", merge: Merge | None = None) -> int:
+    """``merge_parts`` at the end of a run (or ``merge.finish``, begun during it); Ctrl-C / SIGTERM during it
+    becomes ``Interrupted`` (parts kept)."""
     try:
-        return merge_parts(path, parts, attrs, write_group)
+        return merge.finish(attrs) if merge is not None else merge_parts(path, parts, attrs, write_group)
     except KeyboardInterrupt:
         raise Interrupted(f"interrupted while writing {path}: the finished {what} are kept in {parts.root}; "
                           "run the same command again to resume") from None

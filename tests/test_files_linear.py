@@ -158,6 +158,49 @@ ff.merge_parts(out, ff.PartStore(out), {"stage": "merged"})
 """
 
 
+def _file_arrays(path) -> dict:
+    with h5py.File(path, "r") as f:
+        out = {}
+        f.visititems(lambda n, o: out.__setitem__(n, o[()].tobytes()) if isinstance(o, h5py.Dataset) else None)
+        return out
+
+
+def test_merge_fed_during_the_run_equals_one_merge_at_the_end(tmp_path):
+    """``ff.Merge``: chunks added as they come (one not visible yet), the rest at ``finish``: the file of ``merge_parts``."""
+    files = {name: fake_feature_file(tmp_path / f"{name}.h5", 2) for name in ("once", "fed")}
+    stores = {name: ff.PartStore(path) for name, path in files.items()}
+    for parts in stores.values():
+        for i in range(10, 16):
+            parts.save(f"{i:04d}.jpg", features_of(i))  # one chunk per image
+    assert ff.merge_parts(files["once"], stores["once"]) == 6
+
+    parts = stores["fed"]
+    chunks = parts.chunks()
+    merge = ff.Merge(files["fed"], parts)
+    merge.add(chunks[:2])
+    merge.add([chunks[1], parts.root / "reported-but-not-visible-yet.npz"])  # again, and one not there: skipped
+    with h5py.File(files["fed"], "r") as f:  # the file itself is untouched until finish
+        assert sorted(f.keys()) == ["0000.jpg", "0001.jpg"]
+    assert merge.finish({"failed_images": "[]"}) == 6
+    merge.discard()  # nothing left to discard after finish
+    assert _file_arrays(files["fed"]) == _file_arrays(files["once"])
+    assert not parts.root.exists() and not list(tmp_path.glob("*.tmp"))
+
+
+def test_merge_discarded_leaves_the_file_and_the_chunks(tmp_path):
+    out = fake_feature_file(tmp_path / "f.h5", 2)
+    before = out.read_bytes()
+    parts = ff.PartStore(out)
+    for i in range(10, 13):
+        parts.save(f"{i:04d}.jpg", features_of(i))
+    merge = ff.Merge(out, parts)
+    merge.add(parts.chunks())
+    merge.discard()  # the run failed
+    assert out.read_bytes() == before and len(parts.chunks()) == 3 and not list(tmp_path.glob("*.tmp"))
+    assert ff.merge_parts(out, parts) == 3  # the next run merges them
+    assert ff.list_keys(out) == ["0000.jpg", "0001.jpg", "0010.jpg", "0011.jpg", "0012.jpg"]
+
+
 def test_kill_9_during_the_merge_of_a_large_file(tmp_path):
     """SIGKILL at several moments of a merge (copy, append, rename): the file opens, the rerun is exact."""
     import shutil

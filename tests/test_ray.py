@@ -334,6 +334,7 @@ def test_driver_killed_mid_run_resumes_without_redoing(cluster, photos_320, tmp_
         assert not helped or int(helped[-1][1]) == 24 - done
         assert re.search(rf"Ray: {24 - done - by_driver} imgs in ", rerun.stderr), rerun.stderr[-2000:]
     assert _contents(out) == local
+    assert not list(tmp_path.glob("*.tmp"))  # the killed driver's merge copy was removed by the rerun
 
 
 def _sekd_in(ns: str, *args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
@@ -652,6 +653,44 @@ def test_driver_helps_only_with_cores_ray_does_not_hold(monkeypatch, nodes, opti
     cpu_extractor = type("extractor", (), {"device": "cpu"})()
     assert cluster._driver_should_help(_FakeNodes("127.0.0.1", nodes), cluster.RayOptions(**options),
                                        cpu_extractor) is helps
+
+
+@pytest.mark.parametrize(("nodes", "options", "merges"), [
+    ([("127.0.0.1", 1.0, True), ("127.0.0.1", 1.0, True)], {}, False),  # a one-machine cluster holds both cores
+    ([("10.0.0.5", 8.0, True)], {}, True),  # a login node: its cores copy while the workers compute
+    ([("127.0.0.1", 1.0, True)], {}, True),  # one core left to the driver
+    ([("10.0.0.5", 8.0, True)], {"merge": "virtual"}, False),  # nothing to copy
+    ([("127.0.0.1", 2.0, True)], {"merge_while_running": True}, True),  # forced
+    ([("10.0.0.5", 8.0, True)], {"merge_while_running": False}, False),  # off
+])
+def test_driver_merges_while_running_only_with_cores_ray_does_not_hold(monkeypatch, nodes, options, merges):
+    from sekd_sfm import cluster
+
+    monkeypatch.setattr("sekd_sfm.runtime.usable_cores", lambda: 2)
+    assert cluster._merges_while_running(_FakeNodes("127.0.0.1", nodes), cluster.RayOptions(**options)) is merges
+
+
+def test_merge_while_running_gives_the_same_file(cluster, local_run, tmp_path):
+    """The driver copying each task's chunk as it arrives (forced on: this cluster holds every core) changes nothing."""
+    images, features, _, _ = local_run
+    ns, address = cluster
+    out = tmp_path / "features.h5"
+    script = ("import logging, sys\n"
+              "logging.basicConfig(level=logging.INFO, format='%(message)s')\n"
+              "from sekd_sfm.cluster import RayOptions\n"
+              "from sekd_sfm.extract import extract_features\n"
+              "from sekd_sfm.features import FeatureConfig\n"
+              "extract_features(sys.argv[1], sys.argv[2], FeatureConfig(resize_max=160, max_keypoints=300), progress=False, "
+              "executor='ray', ray_options=RayOptions(address=sys.argv[3], images_per_task=1, merge_while_running=True))\n")
+    run = subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-c", script, str(images), str(out), address],
+                         check=False, capture_output=True, text=True, timeout=180)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "the driver copies the workers' results into the output as they arrive" in run.stderr
+    copied = re.findall(r"Ray: (\d+) of the 6 imgs were in the output's copy when the workers finished", run.stderr)
+    assert copied and 1 <= int(copied[-1]) <= 5, run.stderr[-2000:]  # 5 photos + broken.jpg (never copied)
+    assert _contents(out) == _contents(features)
+    assert _attrs(out) == _attrs(features)
+    assert not list(tmp_path.glob("*.tmp")) and not Path(f"{out}.parts").exists()
 
 
 class _ScriptedPool:
