@@ -699,9 +699,11 @@ def _pool_results(ray, actors: list, tasks: list[dict[str, np.ndarray]],
     actor died (its process killed, its machine gone) goes back to the front of the queue, in
     order, for the actors that are up, and the dead actor gets tasks again once Ray has
     restarted it (asked every ``REPROBE_SECONDS``); ``on_worker_lost(reason)`` is told each
-    time. While no actor is up the run waits (one warning), as Ray waits for resources. The driver's only work is this
-    loop (~0.6 ms of its CPU per task; Ray Data's ``map_batches`` did the same at ~5-10x the
-    driver's CPU and ~1 s more start-up per run: docs/cluster.md, run M).
+    time. While no actor is up the run waits (one warning), as Ray waits for resources.
+
+    The driver's only work is this loop (~0.6 ms of its CPU per task; through Ray Data's
+    ``map_batches`` it spent 3-6x more CPU per image and the workers started ~1 s later:
+    docs/cluster.md, run M).
     """
     return _ActorPool(ray, actors, tasks, on_worker_lost).results()
 
