@@ -826,22 +826,20 @@ def _drain(batches: Iterable[dict], total: int, unit: str, desc: str, output: Pa
                     raise SekdError(str(error))
                 if error:
                     on_error(str(key), str(error))
-                elif chunk == BY_DRIVER:
-                    continue  # counted by the driver's helper
-                else:
-                    chunks.add(str(chunk))
-                    if meta and shard_meta is not None:
-                        shard_meta.setdefault(str(chunk), {})[str(key)] = json.loads(str(meta))
+                elif chunk != BY_DRIVER and meta and shard_meta is not None:  # (BY_DRIVER: the helper counts it)
+                    shard_meta.setdefault(str(chunk), {})[str(key)] = json.loads(str(meta))
+            reported = {str(chunk) for chunk in batch["chunk"] if chunk and chunk != BY_DRIVER}  # ("": failed rows)
+            chunks |= reported
             fresh = int(sum(1 for chunk in batch["chunk"] if chunk != BY_DRIVER))
             done += fresh
             bar.update(fresh)
             if merge is not None:
-                merge.add(parts.root / str(c) for c in set(batch["chunk"]) if c and c != BY_DRIVER)
+                merge.add(parts.root / chunk for chunk in reported)
         if helper is not None:
             helper.finish()  # a run so short that no worker result came back
             for key, error in helper.errors:
                 on_error(key, error)
-        _check_visible(folder or parts.root, chunks - {""})
+        _check_visible(folder or parts.root, chunks)
     except KeyboardInterrupt:
         bar.close()
         if helper is not None:
@@ -927,10 +925,7 @@ def driver_merges_while_running(options: RayOptions | None = None) -> bool:
 def _merges_while_running(ray, options: RayOptions) -> bool:
     if options.merge != "copy" or options.merge_while_running is False:
         return False
-    merges = options.merge_while_running is True or _free_cores_here(ray) >= 1
-    if merges:
-        logger.info("Ray: the driver copies the workers' results into the output as they arrive")
-    return merges
+    return options.merge_while_running is True or _free_cores_here(ray) >= 1
 
 
 def _driver_should_help(ray, options: RayOptions, extractor) -> bool:

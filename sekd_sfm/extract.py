@@ -153,6 +153,7 @@ def _extract(image_dir: Path, output: Path, config: FeatureConfig, overwrite: bo
             with cluster.session(executor if todo else "local", ray_options):  # no connection for nothing to do
                 if todo and cluster.driver_merges_while_running(ray_options):
                     merge = ff.Merge(output, parts)  # fed with the workers' chunks as they arrive
+                    logger.info("Ray: the driver copies the workers' results into the output as they arrive")
                 failed = cluster.extract_on_ray(image_dir, todo, config, described, extractor, parts, output,
                                                 strict=strict, progress=progress, options=ray_options, merge=merge)
         parts.flush()  # on disk before the merge: a merge that fails or is killed loses nothing

@@ -152,19 +152,26 @@ def _assert_keys_only(log: str, unit: str) -> None:
     assert received and int(received[-1]) < 500, log[-2000:]
 
 
-def test_driver_helping_gives_the_same_file(cluster, local_run, tmp_path):
-    """The driver's own extraction while workers start (forced on: this cluster holds every core) changes nothing."""
-    images, features, _, _ = local_run
+def _library_extract(cluster, images: Path, out: Path, config: str, ray_options: str, progress: bool = False) -> list[str]:
+    """The command running ``extract_features(images, out, FeatureConfig(CONFIG), executor='ray',
+    ray_options=RayOptions(address=..., RAY_OPTIONS))`` in the namespace (options the CLI does not
+    offer), INFO log on stderr, the output's path on stdout."""
     ns, address = cluster
-    out = tmp_path / "features.h5"
     script = ("import logging, sys\n"
               "logging.basicConfig(level=logging.INFO, format='%(message)s')\n"
               "from sekd_sfm.cluster import RayOptions\n"
               "from sekd_sfm.extract import extract_features\n"
               "from sekd_sfm.features import FeatureConfig\n"
-              "extract_features(sys.argv[1], sys.argv[2], FeatureConfig(resize_max=160, max_keypoints=300), "
-              "progress=False, executor='ray', ray_options=RayOptions(address=sys.argv[3], driver_helps=True))\n")
-    run = subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-c", script, str(images), str(out), address],
+              f"print(extract_features(sys.argv[1], sys.argv[2], FeatureConfig({config}), progress={progress}, "
+              f"executor='ray', ray_options=RayOptions(address=sys.argv[3], {ray_options})))\n")
+    return ["ip", "netns", "exec", ns, sys.executable, "-c", script, str(images), str(out), address]
+
+
+def test_driver_helping_gives_the_same_file(cluster, local_run, tmp_path):
+    """The driver's own extraction while workers start (forced on: this cluster holds every core) changes nothing."""
+    images, features, _, _ = local_run
+    out = tmp_path / "features.h5"
+    run = subprocess.run(_library_extract(cluster, images, out, "resize_max=160, max_keypoints=300", "driver_helps=True"),
                          check=False, capture_output=True, text=True, timeout=180)
     assert run.returncode == 0, run.stderr[-3000:]
     helped = re.findall(r"the driver extracted (\d+) of the 6 images itself", run.stderr)  # 5 photos + broken.jpg
@@ -277,11 +284,8 @@ def test_node_leaving_mid_run_its_tasks_go_to_the_others(cluster, photos_320, tm
         images, local = photos_320
         out = tmp_path / "ray.h5"
         # Tasks of one image, so the third node's worker surely holds some when the machine goes.
-        script = ("import sys\nfrom sekd_sfm.extract import extract_features\nfrom sekd_sfm.features import FeatureConfig\n"
-                  "from sekd_sfm.cluster import RayOptions\n"
-                  f"print(extract_features({str(images)!r}, {str(out)!r}, FeatureConfig(resize_max=320, max_keypoints=300), "
-                  f"executor='ray', ray_options=RayOptions(address={address!r}, images_per_task=1)))\n")
-        driver = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-c", script],
+        driver = subprocess.Popen(_library_extract(cluster, images, out, "resize_max=320, max_keypoints=300",
+                                                   "images_per_task=1", progress=True),
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         def machine_off() -> int | None:  # once its worker computes: the workers, then (by _kill_when) the raylet
             workers = _workers_of(raylet)
@@ -673,16 +677,9 @@ def test_driver_merges_while_running_only_with_cores_ray_does_not_hold(monkeypat
 def test_merge_while_running_gives_the_same_file(cluster, local_run, tmp_path):
     """The driver copying each task's chunk as it arrives (forced on: this cluster holds every core) changes nothing."""
     images, features, _, _ = local_run
-    ns, address = cluster
     out = tmp_path / "features.h5"
-    script = ("import logging, sys\n"
-              "logging.basicConfig(level=logging.INFO, format='%(message)s')\n"
-              "from sekd_sfm.cluster import RayOptions\n"
-              "from sekd_sfm.extract import extract_features\n"
-              "from sekd_sfm.features import FeatureConfig\n"
-              "extract_features(sys.argv[1], sys.argv[2], FeatureConfig(resize_max=160, max_keypoints=300), progress=False, "
-              "executor='ray', ray_options=RayOptions(address=sys.argv[3], images_per_task=1, merge_while_running=True))\n")
-    run = subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-c", script, str(images), str(out), address],
+    run = subprocess.run(_library_extract(cluster, images, out, "resize_max=160, max_keypoints=300",
+                                          "images_per_task=1, merge_while_running=True"),
                          check=False, capture_output=True, text=True, timeout=180)
     assert run.returncode == 0, run.stderr[-3000:]
     assert "the driver copies the workers' results into the output as they arrive" in run.stderr
