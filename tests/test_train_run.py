@@ -18,6 +18,7 @@ from sekd_sfm.errors import SekdError
 from sekd_sfm.train.config import load_run_config, resolve_config
 from sekd_sfm.train.evolve import RunFolder, evolve, train_one_step
 from sekd_sfm.train.report import validation_position
+from sekd_sfm.train.steps import HalfwayDrop
 from sekd_sfm.weights import load_model
 
 
@@ -154,6 +155,48 @@ def test_train_one_step_from_a_checkpoint(tiny_run, images8, tmp_path):
     start = load_model(tiny_run.last)[0].state_dict()
     trained = load_model(result.last)[0].state_dict()
     assert not torch.equal(start["descriptor.convb.2.weight"], trained["descriptor.convb.2.weight"])
+
+
+def test_halfway_schedule_ignores_the_losses_and_resumes_on_its_path():
+    net = torch.nn.Linear(2, 1)
+    optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
+    scheduler = HalfwayDrop(optimizer, half=4, factor=0.1)
+    path = []
+    for loss in [5.0, 4.0, 3.0, 2.0, 1.0, 9.0, 9.0, 9.0]:  # falling, then a plateau: neither matters
+        path.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()  # no gradients: changes nothing, keeps torch's call-order check quiet
+        scheduler.step(loss)
+    assert path == pytest.approx([1e-3] * 4 + [1e-4] * 4)
+    # resumed from the state saved after three epochs, it continues on the same path
+    def fresh():
+        optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
+        return optimizer, HalfwayDrop(optimizer, half=4, factor=0.1)
+    saved_optimizer, saved = fresh()
+    for _ in range(3):
+        saved_optimizer.step()
+        saved.step(0.0)
+    optimizer, scheduler = fresh()
+    optimizer.load_state_dict(saved_optimizer.state_dict())
+    scheduler.load_state_dict(saved.state_dict())
+    resumed = [optimizer.param_groups[0]["lr"]]
+    optimizer.step()
+    scheduler.step(0.0)
+    resumed.append(optimizer.param_groups[0]["lr"])
+    assert resumed == pytest.approx([1e-3, 1e-4])
+
+
+def test_halfway_schedule_in_a_run(images8, tmp_path):
+    torch.set_num_threads(1)
+    cfg = quick_config(images8, epochs_desc=4, epochs_det=2, lr_schedule="halfway")
+    run = evolve(tmp_path / "run", cfg)
+    history = json.loads((run.folder / "history.json").read_text())["epochs"]
+    rates = {(e["task"], e["epoch"]): e["lr"] for e in history}
+    assert [rates[("r0_b", e)] for e in range(4)] == pytest.approx([1e-3, 1e-3, 1e-4, 1e-4])
+    assert [rates[("r0_d", e)] for e in range(2)] == pytest.approx([1e-3, 1e-4])
+    result = CliRunner().invoke(sekd, ["evolve", "--images", str(images8), "--out", str(tmp_path / "bad"),
+                                       "--set", "lr_schedule=cosine"])
+    assert result.exit_code == 1 and "lr_schedule" in result.output
+    assert result.output.strip().count("\n") == 0, result.output
 
 
 @pytest.mark.parametrize("args,message", [

@@ -31,6 +31,7 @@ CHOICES = {
     "best_metric": ("mma3", "ha_avg"),
     "device": ("auto", "cpu", "cuda"),
     "train_precision": ("fp32", "bf16", "auto"),
+    "lr_schedule": ("plateau", "halfway"),
 }
 
 
@@ -118,6 +119,10 @@ class TrainConfig:
     plateau_factor: float = 0.1
     plateau_patience: int = 1
     plateau_threshold: float = 1.0e-4
+    # plateau: [paper/code] reduce-on-plateau on the epoch's mean loss (the plateau_* fields);
+    # halfway: lr for the first half of a step's epochs, plateau_factor * lr after, whatever the
+    # losses do, so runs compared against each other follow the same learning-rate path
+    lr_schedule: str = "plateau"
     # --- ablations (§7) ------------------------------------------------------------------
     no_desc_rep: bool = False        # r = Ddis / (1 + rel_rep_eps)
     no_desc_dis: bool = False        # r = 1 / (Drep + rel_rep_eps)

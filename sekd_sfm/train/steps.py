@@ -205,9 +205,23 @@ def run_epoch(model: nn.Module, frozen: nn.Module, loader: DataLoader, loss_fn: 
     return {k: float(totals[i] / totals[-1]) for i, k in enumerate(keys)}
 
 
-def _optimiser(net: nn.Module, cfg: TrainConfig):
-    """A fresh Adam and reduce-on-plateau scheduler (the learning rate restarts every step)."""
+class HalfwayDrop(torch.optim.lr_scheduler.LambdaLR):
+    """The learning rate times 1 for the first ``half`` epochs, times ``factor`` after.
+
+    ``step`` takes (and ignores) the epoch's loss, as ReduceLROnPlateau's does."""
+
+    def __init__(self, optimizer, half: int, factor: float):
+        super().__init__(optimizer, lambda epoch: 1.0 if epoch < half else factor)
+
+    def step(self, metrics: float | None = None) -> None:
+        super().step()
+
+
+def _optimiser(net: nn.Module, cfg: TrainConfig, epochs: int):
+    """A fresh Adam and scheduler (the learning rate restarts every step of ``epochs`` epochs)."""
     optimizer = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    if cfg.lr_schedule == "halfway":
+        return optimizer, HalfwayDrop(optimizer, epochs // 2, cfg.plateau_factor)
     scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
         optimizer, mode="min", factor=cfg.plateau_factor, patience=cfg.plateau_patience,
         threshold=cfg.plateau_threshold, threshold_mode="rel")
@@ -241,10 +255,10 @@ def train_step(net: nn.Module, kind: str, labels: Labels, images: TrainImages, c
     amp = autocast_dtype(cfg.train_precision, ctx.device)
     net.to(memory_format=training_memory_format(amp))  # in place: the same Parameters, other strides
     frozen = frozen_copy(net)  # the network as this step began (before any resumed state)
-    optimizer, scheduler = _optimiser(net, cfg)
+    epochs = cfg.epochs_desc if kind == "b" else cfg.epochs_det
+    optimizer, scheduler = _optimiser(net, cfg, epochs)
     history, start = _restore(resume_state, net, optimizer, scheduler)
     loss_fn = _loss_function(kind, labels, cfg, alpha)
-    epochs = cfg.epochs_desc if kind == "b" else cfg.epochs_det
     indices = sorted(labels.keypoints)
     model = wrap(PairForward(net), ctx)
     net.train()
