@@ -15,10 +15,10 @@ from conftest import SHARED
 from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.errors import SekdError
-from sekd_sfm.train.config import load_run_config, resolve_config
+from sekd_sfm.train.config import TrainConfig, load_run_config, resolve_config
 from sekd_sfm.train.evolve import RunFolder, evolve, train_one_step
 from sekd_sfm.train.report import validation_position
-from sekd_sfm.train.steps import HalfwayDrop
+from sekd_sfm.train.steps import HalfwayDrop, _optimiser
 from sekd_sfm.weights import load_model
 
 
@@ -183,6 +183,19 @@ def test_halfway_schedule_ignores_the_losses_and_resumes_on_its_path():
     scheduler.step(0.0)
     resumed.append(optimizer.param_groups[0]["lr"])
     assert resumed == pytest.approx([1e-3, 1e-4])
+
+
+@pytest.mark.parametrize("epochs,full", [(1, 1), (2, 1), (3, 2), (8, 4)])
+def test_halfway_schedule_rounds_the_half_up(epochs, full):
+    """A one-epoch step must run at lr (rounding down gave it plateau_factor * lr throughout)."""
+    cfg = TrainConfig(lr=1e-3, lr_schedule="halfway", plateau_factor=0.1)
+    optimizer, scheduler = _optimiser(torch.nn.Linear(2, 1), cfg, epochs)
+    path = []
+    for _ in range(epochs):
+        path.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step(1.0)
+    assert path == pytest.approx([1e-3] * full + [1e-4] * (epochs - full))
 
 
 def test_halfway_schedule_in_a_run(images8, tmp_path):

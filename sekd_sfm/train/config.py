@@ -120,7 +120,7 @@ class TrainConfig:
     plateau_patience: int = 1
     plateau_threshold: float = 1.0e-4
     # plateau: [paper/code] reduce-on-plateau on the epoch's mean loss (the plateau_* fields);
-    # halfway: lr for the first half of a step's epochs, plateau_factor * lr after, whatever the
+    # halfway: lr for the first half (rounded up) of a step's epochs, plateau_factor * lr after, whatever the
     # losses do, so runs compared against each other follow the same learning-rate path
     lr_schedule: str = "plateau"
     # --- ablations (§7) ------------------------------------------------------------------

@@ -221,7 +221,8 @@ def _optimiser(net: nn.Module, cfg: TrainConfig, epochs: int):
     """A fresh Adam and scheduler (the learning rate restarts every step of ``epochs`` epochs)."""
     optimizer = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     if cfg.lr_schedule == "halfway":
-        return optimizer, HalfwayDrop(optimizer, epochs // 2, cfg.plateau_factor)
+        # rounded up: a one-epoch step runs at lr, not wholly at plateau_factor * lr
+        return optimizer, HalfwayDrop(optimizer, (epochs + 1) // 2, cfg.plateau_factor)
     scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
         optimizer, mode="min", factor=cfg.plateau_factor, patience=cfg.plateau_patience,
         threshold=cfg.plateau_threshold, threshold_mode="rel")
