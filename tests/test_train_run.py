@@ -157,32 +157,30 @@ def test_train_one_step_from_a_checkpoint(tiny_run, images8, tmp_path):
     assert not torch.equal(start["descriptor.convb.2.weight"], trained["descriptor.convb.2.weight"])
 
 
-def test_halfway_schedule_ignores_the_losses_and_resumes_on_its_path():
-    net = torch.nn.Linear(2, 1)
-    optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
-    scheduler = HalfwayDrop(optimizer, half=4, factor=0.1)
+def lr_path(optimizer, scheduler, losses) -> list[float]:
+    """The learning rate of each epoch while the scheduler is stepped with ``losses``, one per epoch."""
     path = []
-    for loss in [5.0, 4.0, 3.0, 2.0, 1.0, 9.0, 9.0, 9.0]:  # falling, then a plateau: neither matters
+    for loss in losses:
         path.append(optimizer.param_groups[0]["lr"])
         optimizer.step()  # no gradients: changes nothing, keeps torch's call-order check quiet
         scheduler.step(loss)
-    assert path == pytest.approx([1e-3] * 4 + [1e-4] * 4)
-    # resumed from the state saved after three epochs, it continues on the same path
+    return path
+
+
+def test_halfway_schedule_ignores_the_losses_and_resumes_on_its_path():
+    net = torch.nn.Linear(2, 1)
     def fresh():
         optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
-        return optimizer, HalfwayDrop(optimizer, half=4, factor=0.1)
+        return optimizer, HalfwayDrop(optimizer, epochs=8, factor=0.1)
+    path = lr_path(*fresh(), [5.0, 4.0, 3.0, 2.0, 1.0, 9.0, 9.0, 9.0])  # falling, then a plateau: neither matters
+    assert path == pytest.approx([1e-3] * 4 + [1e-4] * 4)
+    # resumed from the state saved after three epochs, it continues on the same path
     saved_optimizer, saved = fresh()
-    for _ in range(3):
-        saved_optimizer.step()
-        saved.step(0.0)
+    lr_path(saved_optimizer, saved, [0.0] * 3)
     optimizer, scheduler = fresh()
     optimizer.load_state_dict(saved_optimizer.state_dict())
     scheduler.load_state_dict(saved.state_dict())
-    resumed = [optimizer.param_groups[0]["lr"]]
-    optimizer.step()
-    scheduler.step(0.0)
-    resumed.append(optimizer.param_groups[0]["lr"])
-    assert resumed == pytest.approx([1e-3, 1e-4])
+    assert lr_path(optimizer, scheduler, [0.0, 0.0]) == pytest.approx([1e-3, 1e-4])
 
 
 @pytest.mark.parametrize("epochs,full", [(1, 1), (2, 1), (3, 2), (8, 4)])
@@ -190,11 +188,7 @@ def test_halfway_schedule_rounds_the_half_up(epochs, full):
     """A one-epoch step must run at lr (rounding down gave it plateau_factor * lr throughout)."""
     cfg = TrainConfig(lr=1e-3, lr_schedule="halfway", plateau_factor=0.1)
     optimizer, scheduler = _optimiser(torch.nn.Linear(2, 1), cfg, epochs)
-    path = []
-    for _ in range(epochs):
-        path.append(optimizer.param_groups[0]["lr"])
-        optimizer.step()
-        scheduler.step(1.0)
+    path = lr_path(optimizer, scheduler, [1.0] * epochs)
     assert path == pytest.approx([1e-3] * full + [1e-4] * (epochs - full))
 
 

@@ -206,11 +206,13 @@ def run_epoch(model: nn.Module, frozen: nn.Module, loader: DataLoader, loss_fn: 
 
 
 class HalfwayDrop(torch.optim.lr_scheduler.LambdaLR):
-    """The learning rate times 1 for the first ``half`` epochs, times ``factor`` after.
+    """The learning rate times 1 for the first half of ``epochs`` (rounded up), times ``factor`` after.
 
+    Rounded up so that a one-epoch step runs at the learning rate, not wholly at ``factor`` times it.
     ``step`` takes (and ignores) the epoch's loss, as ReduceLROnPlateau's does."""
 
-    def __init__(self, optimizer, half: int, factor: float):
+    def __init__(self, optimizer, epochs: int, factor: float):
+        half = (epochs + 1) // 2
         super().__init__(optimizer, lambda epoch: 1.0 if epoch < half else factor)
 
     def step(self, metrics: float | None = None) -> None:
@@ -221,8 +223,7 @@ def _optimiser(net: nn.Module, cfg: TrainConfig, epochs: int):
     """A fresh Adam and scheduler (the learning rate restarts every step of ``epochs`` epochs)."""
     optimizer = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     if cfg.lr_schedule == "halfway":
-        # rounded up: a one-epoch step runs at lr, not wholly at plateau_factor * lr
-        return optimizer, HalfwayDrop(optimizer, (epochs + 1) // 2, cfg.plateau_factor)
+        return optimizer, HalfwayDrop(optimizer, epochs, cfg.plateau_factor)
     scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
         optimizer, mode="min", factor=cfg.plateau_factor, patience=cfg.plateau_patience,
         threshold=cfg.plateau_threshold, threshold_mode="rel")
