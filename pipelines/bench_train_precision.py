@@ -6,18 +6,25 @@ network, the frozen reference forward, backward, Adam) on random crops with a st
 see the same machine load; prints the best epoch's seconds per step of each and their ratio.
 The real losses add the same work to both precisions (they run in fp32 either way).
 
+``--compare allocator`` instead alternates glibc's default allocator settings with the ones
+training runs under (``runtime.allocator_tuned``: freed buffers stay in the heap), both in
+``--precision``, and also reports the minor page faults and the share of CPU time spent in the
+kernel per step.
+
 Usage: python pipelines/bench_train_precision.py [--crops 192 384] [--batch 4] [--steps 4]
-       [--rounds 2] [--num-threads N]
+       [--rounds 2] [--num-threads N] [--compare precision|allocator] [--precision bf16]
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import resource
 import time
 
 import torch
 
 from sekd_sfm.network import SEKDNet, use_fast_deconv
-from sekd_sfm.runtime import cpu_description
+from sekd_sfm.runtime import allocator_tuned, cpu_description
 from sekd_sfm.train.distributed import Context
 from sekd_sfm.train.model import frozen_copy
 from sekd_sfm.train.steps import (
@@ -50,6 +57,30 @@ def seconds_per_step(precision: str, crop: int, batch: int, steps: int, ctx: Con
     return (time.perf_counter() - start) / steps
 
 
+def allocator_step(tuned: bool, precision: str, crop: int, batch: int, steps: int,
+                   ctx: Context) -> tuple[float, float, float]:
+    """``seconds_per_step`` under glibc's defaults or ``allocator_tuned``; also minor page faults
+    per step and the kernel's share of this process's CPU time (both over the whole epoch pair)."""
+    before = resource.getrusage(resource.RUSAGE_SELF)
+    with allocator_tuned() if tuned else contextlib.nullcontext():
+        seconds = seconds_per_step(precision, crop, batch, steps, ctx)
+    after = resource.getrusage(resource.RUSAGE_SELF)
+    system, user = after.ru_stime - before.ru_stime, after.ru_utime - before.ru_utime
+    return seconds, (after.ru_minflt - before.ru_minflt) / (steps + 1), system / max(system + user, 1e-9)
+
+
+def compare_allocator(args: argparse.Namespace, ctx: Context) -> None:
+    """Print, per crop, the best seconds per step with glibc's defaults and tuned, and their ratio."""
+    for crop in args.crops:
+        best = {False: (float("inf"), 0.0, 0.0), True: (float("inf"), 0.0, 0.0)}
+        for _ in range(args.rounds):
+            for tuned in (False, True):
+                best[tuned] = min(best[tuned], allocator_step(tuned, args.precision, crop, args.batch, args.steps, ctx))
+        line = ", ".join(f"{name} {s:.3f} s/step ({faults:,.0f} page faults/step, {kernel:.0%} in kernel)"
+                         for name, (s, faults, kernel) in (("glibc defaults", best[False]), ("tuned", best[True])))
+        print(f"crop {crop} {args.precision}: {line}; tuned {best[False][0] / best[True][0]:.2f}x faster")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--crops", type=int, nargs="+", default=[192, 384])
@@ -57,6 +88,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=4)
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--num-threads", type=int, default=0)
+    parser.add_argument("--compare", choices=("precision", "allocator"), default="precision")
+    parser.add_argument("--precision", choices=("fp32", "bf16"), default="bf16", help="for --compare allocator")
     args = parser.parse_args()
     if args.num_threads:
         torch.set_num_threads(args.num_threads)
@@ -65,6 +98,9 @@ def main() -> None:
     present = " ".join(name for name, has in cpu["features"].items() if has)
     print(f"cpu: {cpu['model']} ({present}; torch kernels {cpu['torch_kernels']}); {torch.get_num_threads()} threads; "
           f"batch {args.batch} pairs")
+    if args.compare == "allocator":
+        compare_allocator(args, ctx)
+        return
     for crop in args.crops:
         best = {"fp32": float("inf"), "bf16": float("inf")}
         for _ in range(args.rounds):

@@ -15,8 +15,9 @@ from conftest import SHARED
 from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.errors import SekdError
+from sekd_sfm.runtime import tune_allocator, untune_allocator
 from sekd_sfm.train.config import TrainConfig, load_run_config, resolve_config
-from sekd_sfm.train.evolve import RunFolder, evolve, train_one_step
+from sekd_sfm.train.evolve import RunFolder, Runner, evolve, train_one_step
 from sekd_sfm.train.report import validation_position
 from sekd_sfm.train.steps import HalfwayDrop, _optimiser
 from sekd_sfm.weights import load_model
@@ -204,6 +205,55 @@ def test_halfway_schedule_in_a_run(images8, tmp_path):
                                        "--set", "lr_schedule=cosine"])
     assert result.exit_code == 1 and "lr_schedule" in result.output
     assert result.output.strip().count("\n") == 0, result.output
+
+
+HEAP_PROBE = """
+import sys
+import numpy as np
+from sekd_sfm.runtime import allocator_tuned, tune_allocator
+
+def kept_mb():
+    \"\"\"MB a touched and freed 256 MB array leaves in the process (resident).\"\"\"
+    def rss():
+        return int(next(l for l in open("/proc/self/status") if l.startswith("VmRSS")).split()[1]) * 1024
+    block = np.ones(256 << 20, dtype=np.uint8)
+    alive = rss()
+    del block
+    return 256 - ((alive - rss()) >> 20)
+
+if sys.argv[1] == "caller":  # the caller had tuned the allocator: the block leaves it tuned
+    tune_allocator()
+with allocator_tuned() as tuned:
+    inside = kept_mb()
+print(tuned, inside, kept_mb())
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator (mallopt) and /proc")
+@pytest.mark.parametrize("mode,kept_after", [("plain", False), ("caller", True)])
+def test_allocator_tuned_keeps_freed_memory_only_inside_the_block(mode, kept_after):
+    done = subprocess.run([sys.executable, "-c", HEAP_PROBE, mode], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"}, check=False)
+    assert done.returncode == 0, done.stderr
+    tuned, inside, after = done.stdout.split()
+    assert tuned == "True" and int(inside) >= 200  # freed, yet still in the heap for the next training step
+    assert (int(after) >= 200) is kept_after  # given back to the OS unless the caller had tuned it
+
+
+def test_training_runs_with_the_allocator_tuned_and_restores_it(images8, tmp_path, monkeypatch):
+    """CPU training keeps freed buffers in the heap (no fresh zeroed pages every step), then leaves glibc as it was."""
+    untune_allocator()  # earlier tests' networks may have tuned this process
+    seen = []
+    original = Runner.run
+
+    def run_and_look(self):
+        seen.append(tune_allocator.cache_info().currsize)
+        return original(self)
+
+    monkeypatch.setattr(Runner, "run", run_and_look)
+    torch.set_num_threads(1)
+    evolve(tmp_path / "run", quick_config(images8, epochs_desc=1, epochs_det=1))
+    assert seen == [1] and tune_allocator.cache_info().currsize == 0
 
 
 @pytest.mark.parametrize("args,message", [

@@ -52,7 +52,7 @@ from ..inference import nms_keypoints, sample_descriptors
 from ..locking import exclusive_lock
 from ..network import SEKDNet, use_fast_deconv
 from ..network_lite import DEFAULT_CONFIG, SEKDLiteNet, build_lite
-from ..runtime import set_num_threads, shared_dir
+from ..runtime import allocator_tuned, set_num_threads, shared_dir
 from ..weights import (
     DEFAULT_MODEL,
     FULL_ARCHITECTURE,
@@ -528,8 +528,9 @@ def distill(output: str | Path, config: DistillConfig | None = None, resume: boo
     set_num_threads(num_threads)
     cv2.setNumThreads(1)  # augmentation stays on the threads given to torch
     try:
-        return _run(folder, config, resume, progress)
-    finally:  # a library call must not change the caller's thread settings
+        with allocator_tuned():  # CPU training: freed buffers stay in the heap for the next step
+            return _run(folder, config, resume, progress)
+    finally:  # a library call must not change the caller's thread or allocator settings
         torch.set_num_threads(threads)
         cv2.setNumThreads(cv_threads)
 

@@ -32,6 +32,7 @@ import torch
 from ..errors import SekdError
 from ..images import list_images
 from ..locking import exclusive_lock
+from ..runtime import allocator_tuned
 from .config import RUNTIME_FIELDS, TrainConfig, apply, check_memory, load_run_config
 from .config import validate as validate_config
 from .data import TrainImages, subset_indices
@@ -363,7 +364,9 @@ def _run_locked(folder: RunFolder, config: TrainConfig | None, tasks: list[Task]
         logger.info("%s run in %s: %d process(es) on %s, %d threads each", "resumed" if resume else "new",
                     folder.root, ctx.world, ctx.device, torch.get_num_threads())
         runner = Runner(folder, config, tasks, state, ctx)
-        runner.run()
+        # On the CPU freed buffers stay in the heap for the next step (runtime.allocator_tuned).
+        with allocator_tuned() if ctx.device.type == "cpu" else contextlib.nullcontext():
+            runner.run()
     except KeyboardInterrupt:
         logger.warning("interrupted; continue with --resume")
         raise
