@@ -1,4 +1,4 @@
-"""Process-level settings for fast CPU inference: threads, allocator, device, precision.
+"""Process-level settings for fast CPU inference and training: threads, allocator, device, precision.
 
 Also the facts ``sekd doctor`` reports (library versions, CPU features).
 """
