@@ -20,6 +20,9 @@ import argparse
 import contextlib
 import resource
 import time
+from collections.abc import Callable
+from functools import partial
+from typing import Any, TypeVar
 
 import torch
 
@@ -33,6 +36,8 @@ from sekd_sfm.train.steps import (
     run_epoch,
     training_memory_format,
 )
+
+T = TypeVar("T")
 
 
 def stand_in_loss(outputs, reference, batch):
@@ -69,13 +74,23 @@ def allocator_step(tuned: bool, precision: str, crop: int, batch: int, steps: in
     return seconds, (after.ru_minflt - before.ru_minflt) / (steps + 1), system / max(system + user, 1e-9)
 
 
+def best_alternating(rounds: int, variants: tuple, measure: Callable[[Any], T]) -> dict[Any, T]:
+    """``measure`` of each variant, the variants alternated ``rounds`` times so all see the same
+    machine load; the smallest result of each (tuples compare on their first item, the seconds)."""
+    best: dict[Any, T] = {}
+    for _ in range(rounds):
+        for variant in variants:
+            result = measure(variant)
+            best[variant] = min(best[variant], result) if variant in best else result
+    return best
+
+
 def compare_allocator(args: argparse.Namespace, ctx: Context) -> None:
     """Print, per crop, the best seconds per step with glibc's defaults and tuned, and their ratio."""
     for crop in args.crops:
-        best = {False: (float("inf"), 0.0, 0.0), True: (float("inf"), 0.0, 0.0)}
-        for _ in range(args.rounds):
-            for tuned in (False, True):
-                best[tuned] = min(best[tuned], allocator_step(tuned, args.precision, crop, args.batch, args.steps, ctx))
+        best = best_alternating(args.rounds, (False, True),
+                                partial(allocator_step, precision=args.precision, crop=crop, batch=args.batch, steps=args.steps,
+                                        ctx=ctx))
         line = ", ".join(f"{name} {s:.3f} s/step ({faults:,.0f} page faults/step, {kernel:.0%} in kernel)"
                          for name, (s, faults, kernel) in (("glibc defaults", best[False]), ("tuned", best[True])))
         print(f"crop {crop} {args.precision}: {line}; tuned {best[False][0] / best[True][0]:.2f}x faster")
@@ -102,10 +117,8 @@ def main() -> None:
         compare_allocator(args, ctx)
         return
     for crop in args.crops:
-        best = {"fp32": float("inf"), "bf16": float("inf")}
-        for _ in range(args.rounds):
-            for precision in ("fp32", "bf16"):
-                best[precision] = min(best[precision], seconds_per_step(precision, crop, args.batch, args.steps, ctx))
+        best = best_alternating(args.rounds, ("fp32", "bf16"),
+                                partial(seconds_per_step, crop=crop, batch=args.batch, steps=args.steps, ctx=ctx))
         print(f"crop {crop}: fp32 {best['fp32']:.3f} s/step, bf16 {best['bf16']:.3f} s/step, "
               f"bf16 {best['fp32'] / best['bf16']:.2f}x faster")
 

@@ -43,6 +43,11 @@ def tune_allocator() -> bool:
     return sys.platform.startswith("linux") and _set_heap_thresholds(1 << 30, (1 << 31) - 1)
 
 
+def tuning_requested() -> bool:
+    """True when ``tune_allocator`` has been called since the last ``untune_allocator`` (glibc or not)."""
+    return tune_allocator.cache_info().currsize > 0
+
+
 def _set_heap_thresholds(mmap_bytes: int, trim_bytes: int, trim_now: bool = False) -> bool:
     """glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` (and ``malloc_trim`` with ``trim_now``); False without glibc."""
     try:
@@ -67,7 +72,7 @@ def untune_allocator() -> bool:
     arrays are mapped and unmapped again. A later ``tune_allocator`` call tunes anew.
     Returns True when the allocator had been tuned in this process.
     """
-    tuned = tune_allocator.cache_info().currsize > 0 and tune_allocator()  # cached: glibc is not called again
+    tuned = tuning_requested() and tune_allocator()  # cached: glibc is not called again
     tune_allocator.cache_clear()
     return tuned and _set_heap_thresholds(_GLIBC_MMAP_THRESHOLD_MAX, _GLIBC_TRIM_THRESHOLD_MAX, trim_now=True)
 
@@ -81,7 +86,7 @@ def allocator_tuned() -> Iterator[bool]:
     on first touch, so a third or more of a training process's CPU time went to page faults in
     the kernel. Yields whether the allocator is tuned inside the block.
     """
-    tuned_before = tune_allocator.cache_info().currsize > 0
+    tuned_before = tuning_requested()
     tuned = tune_allocator()
     try:
         yield tuned

@@ -293,12 +293,13 @@ def test_cli_keypoints_are_sub_pixel_by_default_and_integer_with_no_subpixel(ima
 HEAP_PROBE = """
 import sys
 import numpy as np
+from sekd_sfm.bench.scale.measure import proc_status
 from sekd_sfm.extract import extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.runtime import tune_allocator
 
 def rss():
-    return int(next(l for l in open("/proc/self/status") if l.startswith("VmRSS")).split()[1]) * 1024
+    return proc_status()["VmRSS"]
 
 if sys.argv[1] == "extract":  # the network tunes the allocator, extract_features undoes it at the end
     extract_features(sys.argv[2], sys.argv[3], FeatureConfig(feature="sekd", max_keypoints=100), progress=False)

@@ -15,7 +15,7 @@ from conftest import SHARED
 from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.errors import SekdError
-from sekd_sfm.runtime import tune_allocator, untune_allocator
+from sekd_sfm.runtime import tuning_requested, untune_allocator
 from sekd_sfm.train.config import TrainConfig, load_run_config, resolve_config
 from sekd_sfm.train.evolve import RunFolder, Runner, evolve, train_one_step
 from sekd_sfm.train.report import validation_position
@@ -210,16 +210,15 @@ def test_halfway_schedule_in_a_run(images8, tmp_path):
 HEAP_PROBE = """
 import sys
 import numpy as np
+from sekd_sfm.bench.scale.measure import proc_status
 from sekd_sfm.runtime import allocator_tuned, tune_allocator
 
 def kept_mb():
     \"\"\"MB a touched and freed 256 MB array leaves in the process (resident).\"\"\"
-    def rss():
-        return int(next(l for l in open("/proc/self/status") if l.startswith("VmRSS")).split()[1]) * 1024
     block = np.ones(256 << 20, dtype=np.uint8)
-    alive = rss()
+    alive = proc_status()["VmRSS"]
     del block
-    return 256 - ((alive - rss()) >> 20)
+    return 256 - ((alive - proc_status()["VmRSS"]) >> 20)
 
 if sys.argv[1] == "caller":  # the caller had tuned the allocator: the block leaves it tuned
     tune_allocator()
@@ -247,13 +246,13 @@ def test_training_runs_with_the_allocator_tuned_and_restores_it(images8, tmp_pat
     original = Runner.run
 
     def run_and_look(self):
-        seen.append(tune_allocator.cache_info().currsize)
+        seen.append(tuning_requested())
         return original(self)
 
     monkeypatch.setattr(Runner, "run", run_and_look)
     torch.set_num_threads(1)
     evolve(tmp_path / "run", quick_config(images8, epochs_desc=1, epochs_det=1))
-    assert seen == [1] and tune_allocator.cache_info().currsize == 0
+    assert seen == [True] and not tuning_requested()
 
 
 @pytest.mark.parametrize("args,message", [
