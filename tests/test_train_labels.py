@@ -8,15 +8,18 @@ import torch
 import torch.nn.functional as F
 
 from sekd_sfm.train.config import TrainConfig
+from sekd_sfm.train.distributed import Context
 from sekd_sfm.train.labels import (
     Labels,
     average_detections,
     fused_reliability,
     keep_with_floor,
+    label_images,
     label_one,
     random_keypoints,
     reliability_scale,
     select_keypoints,
+    weights_sha256,
 )
 from sekd_sfm.train.model import (
     BlockDiagonalConvTranspose2d,
@@ -220,3 +223,69 @@ def test_threshold_floor_on_no_candidates():
     labels = Labels("c", 0)
     keep_with_floor(labels, 0.85, 100)
     assert labels.threshold == 0.85 and labels.mean_keypoints == 0.0
+
+
+class CountedImages:
+    """``TrainImages`` stand-in: ``count`` random 48 x 64 photos; records the reads; ``KeyboardInterrupt``
+    on read number ``stop`` (0-based), as a Ctrl-C in the middle of a labelling step."""
+
+    def __init__(self, count: int, stop: int | None = None):
+        self.count, self.stop, self.reads = count, stop, []
+
+    def __len__(self) -> int:
+        return self.count
+
+    def rgb(self, index: int) -> np.ndarray:
+        if len(self.reads) == self.stop:
+            raise KeyboardInterrupt
+        self.reads.append(index)
+        return np.random.default_rng(index).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+
+
+LABEL_CFG = dataclasses.replace(CFG, num_warps=2, border_band=4, rel_threshold=0.0, rel_min_keypoints=0)
+
+
+def _label(net, images, parts=None, kind="c"):
+    return label_images(net, images, list(range(images.count)), kind, 1, LABEL_CFG, Context(), progress=False,
+                        parts=parts, parts_every=0.0)
+
+
+def test_interrupted_labelling_resumes_from_the_saved_images(tmp_path):
+    torch.set_num_threads(1)
+    net = use_fast_deconv(new_network(0)).eval()
+    whole = _label(net, CountedImages(5))
+    parts = tmp_path / "r1_c.parts"
+    with pytest.raises(KeyboardInterrupt):
+        _label(net, CountedImages(5, stop=3), parts)
+    assert sorted(p.name for p in parts.iterdir()) == ["p0_0000000.npz", "p0_0000001.npz", "p0_0000002.npz"]
+    images = CountedImages(5)
+    resumed = _label(net, images, parts)
+    assert images.reads == [3, 4]  # the three saved images are not labelled again
+    assert resumed.network == whole.network == weights_sha256(net)
+    assert resumed.sizes == whole.sizes and sorted(resumed.keypoints) == [0, 1, 2, 3, 4]
+    for i in range(5):  # same process, same threads: bitwise the uninterrupted labels
+        assert np.array_equal(resumed.keypoints[i], whole.keypoints[i])
+        assert np.array_equal(resumed.scores[i], whole.scores[i])
+
+
+def test_saved_images_of_other_weights_or_steps_are_labelled_again(tmp_path, caplog):
+    torch.set_num_threads(1)
+    net = use_fast_deconv(new_network(0)).eval()
+    other = use_fast_deconv(new_network(1)).eval()
+    for network, kind in ((other, "c"), (net, "a")):
+        parts = tmp_path / f"{kind}.parts"
+        with pytest.raises(KeyboardInterrupt):
+            _label(net, CountedImages(3, stop=2), parts)  # images 0, 1 saved by step (c) of `net`
+        images = CountedImages(3)
+        _label(network, images, parts, kind)
+        assert images.reads == [0, 1, 2]
+    assert caplog.text.count("labelled by other weights or another step") == 4
+
+
+def test_weights_sha256_sees_a_changed_parameter():
+    net = new_network(0)
+    before = weights_sha256(net)
+    assert weights_sha256(new_network(0)) == before and len(before) == 64
+    with torch.no_grad():
+        next(net.parameters()).view(-1)[0] += 1e-6
+    assert weights_sha256(net) != before

@@ -16,6 +16,7 @@ from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.errors import SekdError
 from sekd_sfm.runtime import tuning_requested, untune_allocator
+from sekd_sfm.train import labels as labels_module
 from sekd_sfm.train.config import TrainConfig, load_run_config, resolve_config
 from sekd_sfm.train.evolve import RunFolder, Runner, evolve, train_one_step
 from sekd_sfm.train.report import validation_position
@@ -104,10 +105,16 @@ def test_exported_models_load_and_run_in_extract(tiny_run, images8, tmp_path):
         assert 0 < group["keypoints"].shape[0] <= 50 and group["descriptors"].shape[0] == 128
 
 
-def test_resume_after_every_epoch_equals_uninterrupted(images8, tmp_path, monkeypatch):
+@pytest.fixture(scope="module")
+def quick_run(images8, tmp_path_factory):
+    """An uninterrupted `quick_config` run: round 0 with random keypoints, a0, b (2 epochs), c, d (2 epochs)."""
     torch.set_num_threads(1)
-    cfg = quick_config(images8)  # round 0 with random keypoints: a0, b (2 epochs), c, d (2 epochs)
-    reference = evolve(tmp_path / "whole", cfg)
+    return evolve(tmp_path_factory.mktemp("quick") / "whole", quick_config(images8))
+
+
+def test_resume_after_every_epoch_equals_uninterrupted(quick_run, images8, tmp_path, monkeypatch):
+    torch.set_num_threads(1)
+    cfg, reference = quick_config(images8), quick_run
 
     original = RunFolder.save_epoch
 
@@ -131,8 +138,38 @@ def test_resume_after_every_epoch_equals_uninterrupted(images8, tmp_path, monkey
     assert a.keys() == b.keys()
     for key in a:  # same process, same threads: the resumed run is bitwise identical
         assert torch.equal(a[key], b[key]), key
-    losses = [(tmp_path / run / "losses.csv").read_text() for run in ("whole", "resumed")]
+    losses = [(run / "losses.csv").read_text() for run in (reference.folder, tmp_path / "resumed")]
     assert losses[0] == losses[1]
+
+
+def test_labelling_interrupted_after_every_image_resumes_to_the_same_run(quick_run, images8, tmp_path, monkeypatch):
+    torch.set_num_threads(1)
+    original = labels_module.save_part
+
+    def crash_after_saving(*args, **kwargs):
+        original(*args, **kwargs)
+        raise KeyboardInterrupt  # as if Ctrl-C arrived right after an image's labels were saved
+
+    monkeypatch.setattr(labels_module, "PARTS_EVERY_SECONDS", 0.0)  # save after every image
+    monkeypatch.setattr(labels_module, "save_part", crash_after_saving)
+    interruptions, resume = 0, False
+    while interruptions < 50:  # bounded: a resume that relabelled saved images would crash forever
+        try:
+            resumed = evolve(tmp_path / "resumed", None if resume else quick_config(images8), resume=resume)
+            break
+        except KeyboardInterrupt:
+            interruptions, resume = interruptions + 1, True
+    records = json.loads((quick_run.folder / "history.json").read_text())["labels"]
+    assert [r["task"] for r in records] == ["r0_a0", "r0_c"]
+    assert interruptions == sum(r["images"] for r in records)  # once per labelled image, each labelled once
+    assert {p.name for p in (resumed.folder / "labels").iterdir()} == {"r0_a0.npz", "r0_c.npz"}  # parts deleted
+    for task in ("r0_a0", "r0_c"):  # same process, same threads: bitwise the uninterrupted labels and model
+        with np.load(quick_run.folder / "labels" / f"{task}.npz") as a, np.load(resumed.folder / "labels" / f"{task}.npz") as b:
+            assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files), task
+    a = torch.load(quick_run.last, weights_only=True)["state_dict"]
+    b = torch.load(resumed.last, weights_only=True)["state_dict"]
+    assert all(torch.equal(a[key], b[key]) for key in a)
+    assert "labelled before the interruption" in (resumed.folder / "train.log").read_text()
 
 
 def test_resume_and_new_run_errors(images8, tmp_path):
@@ -292,6 +329,7 @@ def test_two_process_data_parallel_run(images8, tmp_path):
     assert log.count("weights identical on all 2 processes") == 2  # after (b) and after (d)
     with np.load(out / "labels" / "r0_c.npz") as z:
         assert sorted(z["indices"].tolist()) == list(range(8))  # each process labelled half, all gathered
+    assert not list((out / "labels").glob("*.parts"))  # both processes' chunk files deleted with the step done
     assert load_model(out / "best.pth")[1].meta["task"] in ("r0_b", "r0_d")  # both steps validate
 
 

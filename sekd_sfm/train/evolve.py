@@ -15,6 +15,7 @@ Run folder::
     metrics.json  metrics.csv  curves.png  best.pth  last.pth
     .lock (held by the running process: a second run on the folder is refused)
     labels/r{k}_{a0|a|c}.npz       models/r{k}_{b|d}.pth
+    labels/r{k}_{a0|a|c}.parts/    (chunks of a labelling step not finished yet)
     checkpoints/r{k}_{b|d}_e{n}.pth  checkpoints/resume.pt
 """
 from __future__ import annotations
@@ -24,6 +25,7 @@ import hashlib
 import json
 import logging
 import os
+import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -106,6 +108,10 @@ class RunFolder:
 
     def labels_path(self, task_id: str) -> Path:
         return self.root / "labels" / f"{task_id}.npz"
+
+    def label_parts(self, task_id: str) -> Path:
+        """Chunk files of a labelling step still running (or interrupted): what its resume reuses."""
+        return self.root / "labels" / f"{task_id}.parts"
 
     def model_path(self, task_id: str) -> Path:
         return self.root / "models" / f"{task_id}.pth"
@@ -207,8 +213,9 @@ class Runner:
 
     def _label(self, task: Task) -> None:
         indices = subset_indices(len(self.images), self.cfg.subset_factor, task.round)
+        parts = self.folder.label_parts(task.id)
         labels = label_images(self.net, self.images, indices, task.kind, task.round, self.cfg, self.ctx,
-                              self.cfg.progress)
+                              self.cfg.progress, parts)
         n = labels.mean_keypoints
         logger.info("round %d labels (%s): %.1f keypoints per image over %d images, background weight %.3g%s",
                     task.round, task.kind, n, len(indices), labels.bg_weight,
@@ -221,6 +228,7 @@ class Runner:
                            "det_threshold" if task.kind == "a" else "rel_threshold or raising rel_min_keypoints")
         if self.ctx.main:
             labels.save(self.folder.labels_path(task.id))
+            shutil.rmtree(parts, ignore_errors=True)  # after the save: a crash in between only keeps spare files
             self.history.add("labels", {"task": task.id, "round": task.round, "kind": task.kind,
                                         "keypoints": n, "images": len(indices), "bg_weight": labels.bg_weight,
                                         "threshold": labels.threshold})

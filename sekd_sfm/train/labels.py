@@ -2,11 +2,16 @@
 
 As in docs/method.md "Training". Labelling runs the network in eval mode without gradients on
 full (resized) images; processes label disjoint shares of the images and exchange them.
+With a ``parts`` folder, the labelled images are saved every minute in small chunk files, so an
+interrupted step resumes from the images it had labelled (a labelling step at the paper's scale
+takes hours on a CPU).
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,6 +50,7 @@ class Labels:
     sizes: dict[int, tuple[int, int]] = field(default_factory=dict)  # image index -> (H, W)
     maps: dict[int, np.ndarray] = field(default_factory=dict)        # optional float16 score maps
     threshold: float | None = None                                   # score threshold the keypoints passed
+    network: str = ""                                                # sha256 of the labelling network's weights
 
     @property
     def mean_keypoints(self) -> float:
@@ -68,6 +74,8 @@ class Labels:
             "scores": np.concatenate([self.scores[i] for i in order] or [np.zeros(0, np.float32)]),
         }
         arrays.update({f"map_{i}": m for i, m in self.maps.items()})
+        if self.network:
+            arrays["network"] = np.array(self.network)
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # PID: never shared with another process
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
@@ -76,7 +84,7 @@ class Labels:
     @classmethod
     def load(cls, path: Path) -> Labels:
         with np.load(path) as z:
-            labels = cls(str(z["kind"]), int(z["round"]))
+            labels = cls(str(z["kind"]), int(z["round"]), network=str(z["network"]) if "network" in z else "")
             bounds = np.concatenate([[0], np.cumsum(z["counts"])])
             for j, i in enumerate(z["indices"].tolist()):
                 labels.keypoints[i] = z["keypoints"][bounds[j]:bounds[j + 1]]
@@ -342,30 +350,96 @@ def label_one(net: nn.Module | Callable, rgb: np.ndarray, rng: np.random.Generat
     return xy, scores, score
 
 
+#: Seconds between two chunk files of an interrupted-labelling-safe step (``label_images(parts=...)``).
+PARTS_EVERY_SECONDS = 60.0
+
+
 def label_images(net: nn.Module, images: TrainImages, indices: list[int], kind: str, round_index: int,
-                 cfg: TrainConfig, ctx: Context, progress: bool = True) -> Labels:
-    """Run labelling step ``kind`` on ``indices``, split over processes; every process gets all labels."""
+                 cfg: TrainConfig, ctx: Context, progress: bool = True, parts: Path | None = None,
+                 parts_every: float | None = None) -> Labels:
+    """Run labelling step ``kind`` on ``indices``, split over processes; every process gets all labels.
+
+    ``parts``: folder of this step's chunk files. Images found there (labelled by the same network
+    weights, by any process) are not labelled again; the newly labelled ones are saved there every
+    ``parts_every`` seconds (default ``PARTS_EVERY_SECONDS``). Each image's draws are seeded by
+    (seed, round, step, image), so a resumed step gives the labels of an uninterrupted one. The
+    caller deletes the folder once the labels are saved.
+    """
     was_training = net.training
     net.eval()
-    forward = fp32_eval_forward(net, ctx.device)  # built once per pass: the weights do not change while labelling
-    part = Labels(kind, round_index)
+    network = weights_sha256(net)
+    part = Labels(kind, round_index, network=network)
     mine = shard(ctx, indices)
-    bar = tqdm(mine, desc=f"round {round_index} ({kind}) labels", disable=not (progress and ctx.main),
-               leave=False, dynamic_ncols=True)
+    saved = load_parts(parts, kind, round_index, network, set(mine)) if parts is not None else Labels(kind, round_index)
+    _update(part, saved)
+    todo = [i for i in mine if i not in saved.keypoints]
+    if saved.keypoints:
+        logger.info("round %d labels (%s): %d of %d images labelled before the interruption, %d to go",
+                    round_index, kind, len(saved.keypoints), len(mine), len(todo))
+    forward = fp32_eval_forward(net, ctx.device)  # built once per pass: the weights do not change while labelling
+    every = PARTS_EVERY_SECONDS if parts_every is None else parts_every
+    chunk, last_save = Labels(kind, round_index, network=network), time.monotonic()
+    bar = tqdm(todo, desc=f"round {round_index} ({kind}) labels", disable=not (progress and ctx.main),
+               leave=False, dynamic_ncols=True, initial=len(saved.keypoints), total=len(mine))
     for i in bar:
         rng = rng_for(cfg.seed, round_index, kind, 0, i)
         xy, scores, score = label_one(forward, images.rgb(i), rng, kind, cfg, ctx.device)
-        part.keypoints[i], part.scores[i], part.sizes[i] = xy, scores, tuple(score.shape)
+        chunk.keypoints[i], chunk.scores[i], chunk.sizes[i] = xy, scores, tuple(score.shape)
         if cfg.save_maps:
-            part.maps[i] = score.numpy().astype(np.float16)
+            chunk.maps[i] = score.numpy().astype(np.float16)
         bar.set_postfix(kp=len(xy))
+        if parts is not None and time.monotonic() - last_save >= every:
+            save_part(chunk, parts, ctx.rank)
+            _update(part, chunk)
+            chunk, last_save = Labels(kind, round_index, network=network), time.monotonic()
+    _update(part, chunk)
     net.train(was_training)
     labels = _merge(gather_objects(ctx, part), kind, round_index)
+    labels.network = network
     if kind == "a":
         labels.threshold = cfg.det_threshold
     elif kind == "c":
         keep_with_floor(labels, cfg.rel_threshold, cfg.rel_min_keypoints)
     return labels
+
+
+def weights_sha256(net: nn.Module) -> str:
+    """SHA-256 of the parameters and buffers (names, shapes, bytes): which network labelled."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(net.state_dict().items()):
+        digest.update(f"{name}{tuple(tensor.shape)}{tensor.dtype}".encode())
+        digest.update(tensor.detach().cpu().contiguous().view(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
+
+
+def save_part(chunk: Labels, parts: Path, rank: int) -> None:
+    """One chunk file ``parts/p{rank}_{first image}.npz`` (atomic): the images labelled since the last one."""
+    if not chunk.keypoints:
+        return
+    parts.mkdir(parents=True, exist_ok=True)
+    chunk.save(parts / f"p{rank}_{min(chunk.keypoints):07d}.npz")
+
+
+def load_parts(parts: Path, kind: str, round_index: int, network: str, wanted: set[int]) -> Labels:
+    """The labels of ``wanted`` images found in the chunk files of ``parts``.
+
+    Chunks of another step or network (a folder left from a changed run) are ignored, with a warning."""
+    found = Labels(kind, round_index)
+    for path in sorted(parts.glob("p*.npz")) if parts.is_dir() else []:
+        chunk = Labels.load(path)
+        if (chunk.kind, chunk.round_index, chunk.network) != (kind, round_index, network):
+            logger.warning("%s: labelled by other weights or another step; labelling its images again", path)
+            continue
+        for i in set(chunk.keypoints) & wanted:
+            found.keypoints[i], found.scores[i], found.sizes[i] = chunk.keypoints[i], chunk.scores[i], chunk.sizes[i]
+            if i in chunk.maps:
+                found.maps[i] = chunk.maps[i]
+    return found
+
+
+def _update(labels: Labels, more: Labels) -> None:
+    for name in ("keypoints", "scores", "sizes", "maps"):
+        getattr(labels, name).update(getattr(more, name))
 
 
 def keep_with_floor(labels: Labels, threshold: float, min_mean: float) -> None:
@@ -387,6 +461,5 @@ def keep_with_floor(labels: Labels, threshold: float, min_mean: float) -> None:
 def _merge(parts: list[Labels], kind: str, round_index: int) -> Labels:
     labels = Labels(kind, round_index)
     for part in parts:
-        for name in ("keypoints", "scores", "sizes", "maps"):
-            getattr(labels, name).update(getattr(part, name))
+        _update(labels, part)
     return labels
