@@ -233,6 +233,20 @@ def test_feature_cache_follows_the_model_file_content(tmp_path, shared):
     assert cache_file(sift, sift.feature_config(500), tmp_path, tmp_path).name.startswith("sift-")
 
 
+def test_feature_cache_of_prepared_images_moves_with_the_output_folder(tmp_path):
+    """Images prepared inside the cache name it by their place there: a copied output folder reuses it."""
+    from sekd_sfm.bench.methods import cache_file
+
+    sift = parse_method("sift")
+    config = sift.feature_config(500)
+    a, b = tmp_path / "a" / "cache", tmp_path / "b" / "cache"
+    assert cache_file(sift, config, a / "images", a).name == cache_file(sift, config, b / "images", b).name
+    assert cache_file(sift, config, a / "images", a).name != cache_file(sift, config, a / "other", a).name
+    # Images outside the cache (a pose scene's photos) still count by their own folder.
+    assert cache_file(sift, config, tmp_path / "scene1", a).name != cache_file(sift, config, tmp_path / "scene2", a).name
+    assert cache_file(sift, config, tmp_path / "scene1", a).name == cache_file(sift, config, tmp_path / "scene1", b).name
+
+
 def test_results_json_keeps_number_lists_on_one_line_and_rounds_only_the_runs():
     from sekd_sfm.bench.report import results_json
 

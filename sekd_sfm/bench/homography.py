@@ -6,7 +6,8 @@ resized (long side <= 640 px by default, area interpolation) and cropped to a mu
 16 as the authors did; H is rescaled, and every error is in resized-image pixels.
 
 Predictions are cached (resized images, one feature file per method) under the output
-folder, so re-scoring and adding a method only extract what is missing.
+folder, so re-scoring and adding a method only extract what is missing; a copy of the
+folder's ``cache/`` under another output folder serves it too.
 """
 from __future__ import annotations
 

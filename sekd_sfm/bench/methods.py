@@ -107,7 +107,11 @@ def cache_file(method: Method, config: FeatureConfig, image_root: Path, cache: P
     # The SEKD checkpoint's content, not only its path: shipping a new embedded model (same
     # path, weights None) or overwriting a .pth must not reuse the old model's features.
     model = file_sha256(resolve_weights_path(config.weights)) if config.feature == "sekd" else ""
-    digest = hashlib.sha1(json.dumps([asdict(config), tag, str(Path(image_root).resolve()), model], sort_keys=True,
+    root, home = Path(image_root).resolve(), Path(cache).resolve()
+    # Images prepared inside the cache (the homography protocol's) count by their place in it, so a
+    # copied or moved output folder keeps its features; images elsewhere by their absolute path.
+    images = str(root.relative_to(home)) if root.is_relative_to(home) else str(root)
+    digest = hashlib.sha1(json.dumps([asdict(config), tag, images, model], sort_keys=True,
                                      default=str).encode()).hexdigest()[:8]
     return Path(cache) / f"{method.label}-{digest}.h5"
 
