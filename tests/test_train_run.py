@@ -292,6 +292,18 @@ def test_training_runs_with_the_allocator_tuned_and_restores_it(images8, tmp_pat
     assert seen == [True] and not tuning_requested()
 
 
+def test_every_run_leaves_its_process_group_even_when_interrupted(images8, tmp_path, monkeypatch):
+    """torchrun processes leave the group at the end of each run (a library caller may start another)."""
+    from sekd_sfm.train import evolve as evolve_module
+
+    left = []
+    monkeypatch.setattr(evolve_module, "teardown", lambda: left.append(True))
+    monkeypatch.setattr(Runner, "run", lambda self: (_ for _ in ()).throw(KeyboardInterrupt))
+    with pytest.raises(KeyboardInterrupt):
+        evolve(tmp_path / "run", quick_config(images8, validate=False))
+    assert left == [True]
+
+
 @pytest.mark.parametrize("args,message", [
     (["evolve", "--images", "/no/such/folder", "--out", "{tmp}/r", "--schedule", "tiny"], "image folder not found"),
     (["evolve", "--images", "{tmp}", "--out", "{tmp}/r", "--set", "bogus=1"], "unknown config key"),

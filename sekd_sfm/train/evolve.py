@@ -38,7 +38,7 @@ from ..runtime import allocator_tuned
 from .config import RUNTIME_FIELDS, TrainConfig, apply, check_memory, load_run_config
 from .config import validate as validate_config
 from .data import TrainImages, subset_indices
-from .distributed import Context, barrier, setup
+from .distributed import Context, barrier, setup, teardown
 from .labels import Labels, label_images
 from .model import export, initial_network, use_fast_deconv
 from .report import History, write_atomic
@@ -356,6 +356,14 @@ def _run_locked(folder: RunFolder, config: TrainConfig | None, tasks: list[Task]
     check_memory(config)
     images = _check_images(folder, config, state or {})
     ctx = setup(config.device, config.num_threads)
+    try:
+        return _run_in_group(folder, config, tasks, state, images, resume, ctx)
+    finally:
+        teardown()  # a torchrun process leaves its group, so a library caller may start another run
+
+
+def _run_in_group(folder: RunFolder, config: TrainConfig, tasks: list[Task], state: dict | None, images: dict,
+                  resume: bool, ctx: Context) -> RunResult:
     if config.batch_size % ctx.world:
         raise SekdError(f"batch_size {config.batch_size} must be a multiple of the {ctx.world} processes")
     barrier(ctx)  # every process has checked the folder before the first one writes to it
