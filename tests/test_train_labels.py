@@ -280,6 +280,10 @@ def test_saved_images_of_other_weights_or_steps_are_labelled_again(tmp_path, cap
         _label(network, images, parts, kind)
         assert images.reads == [0, 1, 2]
     assert caplog.text.count("labelled by other weights or another step") == 4
+    (tmp_path / "a.parts" / "p0_0000000.npz").write_bytes(b"not a zip file")  # e.g. a disk error
+    images = CountedImages(3)
+    _label(net, images, tmp_path / "a.parts", "a")
+    assert images.reads == [0] and "unreadable" in caplog.text
 
 
 def test_weights_sha256_sees_a_changed_parameter():

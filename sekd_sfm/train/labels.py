@@ -12,6 +12,7 @@ import hashlib
 import logging
 import os
 import time
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -423,10 +424,15 @@ def save_part(chunk: Labels, parts: Path, rank: int) -> None:
 def load_parts(parts: Path, kind: str, round_index: int, network: str, wanted: set[int]) -> Labels:
     """The labels of ``wanted`` images found in the chunk files of ``parts``.
 
-    Chunks of another step or network (a folder left from a changed run) are ignored, with a warning."""
+    Chunks of another step or network (a folder left from a changed run) and unreadable ones are
+    ignored, with a warning: their images are labelled again."""
     found = Labels(kind, round_index)
     for path in sorted(parts.glob("p*.npz")) if parts.is_dir() else []:
-        chunk = Labels.load(path)
+        try:
+            chunk = Labels.load(path)
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+            logger.warning("%s: unreadable (%s); labelling its images again", path, exc)
+            continue
         if (chunk.kind, chunk.round_index, chunk.network) != (kind, round_index, network):
             logger.warning("%s: labelled by other weights or another step; labelling its images again", path)
             continue
