@@ -369,19 +369,19 @@ def label_images(net: nn.Module, images: TrainImages, indices: list[int], kind: 
     was_training = net.training
     net.eval()
     network = weights_sha256(net)
-    part = Labels(kind, round_index, network=network)
     mine = shard(ctx, indices)
-    saved = load_parts(parts, kind, round_index, network, set(mine)) if parts is not None else Labels(kind, round_index)
-    _update(part, saved)
-    todo = [i for i in mine if i not in saved.keypoints]
-    if saved.keypoints:
+    # This process's labels: the images saved before an interruption, then the ones labelled now.
+    part = load_parts(parts, kind, round_index, network, set(mine)) if parts is not None else Labels(kind, round_index)
+    done = len(part.keypoints)
+    todo = [i for i in mine if i not in part.keypoints]
+    if done:
         logger.info("round %d labels (%s): %d of %d images labelled before the interruption, %d to go",
-                    round_index, kind, len(saved.keypoints), len(mine), len(todo))
+                    round_index, kind, done, len(mine), len(todo))
     forward = fp32_eval_forward(net, ctx.device)  # built once per pass: the weights do not change while labelling
     every = PARTS_EVERY_SECONDS if parts_every is None else parts_every
     chunk, last_save = Labels(kind, round_index, network=network), time.monotonic()
     bar = tqdm(todo, desc=f"round {round_index} ({kind}) labels", disable=not (progress and ctx.main),
-               leave=False, dynamic_ncols=True, initial=len(saved.keypoints), total=len(mine))
+               leave=False, dynamic_ncols=True, initial=done, total=len(mine))
     for i in bar:
         rng = rng_for(cfg.seed, round_index, kind, 0, i)
         xy, scores, score = label_one(forward, images.rgb(i), rng, kind, cfg, ctx.device)
@@ -436,16 +436,15 @@ def load_parts(parts: Path, kind: str, round_index: int, network: str, wanted: s
         if (chunk.kind, chunk.round_index, chunk.network) != (kind, round_index, network):
             logger.warning("%s: labelled by other weights or another step; labelling its images again", path)
             continue
-        for i in set(chunk.keypoints) & wanted:
-            found.keypoints[i], found.scores[i], found.sizes[i] = chunk.keypoints[i], chunk.scores[i], chunk.sizes[i]
-            if i in chunk.maps:
-                found.maps[i] = chunk.maps[i]
+        _update(found, chunk, wanted)
     return found
 
 
-def _update(labels: Labels, more: Labels) -> None:
+def _update(labels: Labels, more: Labels, only: set[int] | None = None) -> None:
+    """Add ``more``'s per-image entries to ``labels`` (those of the images in ``only``, if given)."""
     for name in ("keypoints", "scores", "sizes", "maps"):
-        getattr(labels, name).update(getattr(more, name))
+        entries = getattr(more, name)
+        getattr(labels, name).update(entries if only is None else {i: v for i, v in entries.items() if i in only})
 
 
 def keep_with_floor(labels: Labels, threshold: float, min_mean: float) -> None:
