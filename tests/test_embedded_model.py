@@ -259,3 +259,63 @@ def test_wall_time_row_adds_every_shipped_starting_model():
         {"wall_seconds": 5400, "init": chain})
     # A link whose time is unknown (a checkpoint that was not shipped): no total is claimed.
     assert "from random weights" not in ship._wall_row({"wall_seconds": 5400, "init": {"sha256": "x", "file": "a.pth"}})
+
+
+@pytest.fixture
+def two_runs(tmp_path, run) -> tuple[Path, Path]:
+    """``run`` and ``run_b``, which starts from ``run``'s r1_d; both with an r2_d holding our embedded weights."""
+    import shutil
+
+    import torch
+
+    checkpoint = torch.load(OWN, weights_only=True)
+    for task in ("r1_d", "r2_d"):  # our weights, other files than the shipped one (their metadata differ)
+        torch.save({"state_dict": checkpoint["state_dict"], "sekd_sfm": {"task": task}}, run / "models" / f"{task}.pth")
+    run_b = tmp_path / "run_b"
+    shutil.copytree(run, run_b, ignore=shutil.ignore_patterns("models"))
+    (run_b / "models").mkdir()
+    torch.save({"state_dict": checkpoint["state_dict"], "sekd_sfm": {"task": "r2_d", "schedule": "cpu", "seed": 0}},
+               run_b / "models" / "r2_d.pth")
+    config = (run_b / "config.yaml").read_text().replace("init_weights: ''", f"init_weights: {run}/models/r1_d.pth")
+    (run_b / "config.yaml").write_text(config)
+    return run, run_b
+
+
+def test_ship_an_average_of_two_runs_and_a_shipped_model_names_every_run(tmp_path, shared, two_runs):
+    import torch
+
+    from sekd_sfm.train.soup import average_checkpoints
+
+    run, run_b = two_runs
+    inner = average_checkpoints([run / "models/r2_d.pth", run_b / "models/r2_d.pth"], tmp_path / "inner.pth")
+    outer = average_checkpoints([OWN, inner], tmp_path / "v3.pth", [3, 1])
+    dest = ship.ship_average([run, run_b], outer, tmp_path / "m.pth", card=tmp_path / "card.md", guard=False)
+    meta = load_model(dest)[1].meta
+    shares = [(leaf.get("file") or (Path(leaf["run"]).name, leaf["task"]), leaf["weight"]) for leaf in meta["average_of"]]
+    assert shares == [("sekd_own.pth", 0.75), (("run", "r2_d"), 0.125), (("run_b", "r2_d"), 0.125)]
+    rows = {row["run"]: row for row in meta["runs"]}
+    assert rows["run_b"]["init"] == "`r1_d` of `run`" and rows["run"]["init"] == "random weights"
+    assert rows["run"]["until"] == "r2_d" and rows["run"]["tasks"][-1] == "r2_d"
+    own_seconds = load_model(OWN)[1].meta["wall_seconds"]
+    assert meta["wall_seconds"] >= own_seconds + rows["run"]["wall_seconds"] + rows["run_b"]["wall_seconds"] > own_seconds
+    assert meta["average_commands"] == [
+        "python -m sekd_sfm.train.soup run/models/r2_d.pth run_b/models/r2_d.pth --weights 0.5 0.5 -o inner.pth",
+        "python -m sekd_sfm.train.soup sekd_own.pth inner.pth --weights 0.75 0.25 -o v3.pth"]
+    assert meta["schedule"] == "cpu" and meta["seed"] == 0 and "command" in meta
+    ours = torch.load(OWN, weights_only=True)["state_dict"]  # all ingredients hold it: the average is it, exactly
+    assert all(torch.equal(v, ours[k]) for k, v in torch.load(dest, weights_only=True)["state_dict"].items())
+    card = (tmp_path / "card.md").read_text()
+    assert file_sha256(dest, 64) in card and "| 0.750 | `sekd_own.pth`" in card and "`r1_d` of `run`" in card
+    assert "-o v3.pth" in card and "## Runs" in card
+
+
+def test_ship_average_refuses_an_ingredient_of_unknown_training(tmp_path, two_runs):
+    from sekd_sfm.train.soup import average_checkpoints
+
+    run, run_b = two_runs
+    soup = average_checkpoints([run / "models/r2_d.pth", AUTHORS], tmp_path / "soup.pth")  # the authors': not shipped here
+    with pytest.raises(SekdError, match="sekd_authors.pth: an ingredient of this weight average is neither a step model"):
+        ship.ship_average([run, run_b], soup, tmp_path / "m.pth")
+    with pytest.raises(SekdError, match="not a weight average"):
+        ship.ship_average([run, run_b], run / "models/r2_d.pth", tmp_path / "m.pth")
+    assert not (tmp_path / "m.pth").exists()

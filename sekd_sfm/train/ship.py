@@ -4,7 +4,9 @@
 (weights and metadata, fp32) to ``sekd_sfm/models/sekd_own.pth`` and writes a model
 card that says what the model was trained on, how, for how long, and its checksum.
 ``--which`` may also name a weight average of the run's step models
-(``python -m sekd_sfm.train.soup``); the card then lists its ingredients. A run that
+(``python -m sekd_sfm.train.soup``); the card then lists its ingredients. ``ship RUN RUN ...
+--which AVERAGE.pth`` ships an average of models from several runs (nested averages and
+shipped models among its ingredients), the card listing every run behind it. A run that
 started from another model (``init_weights``) records that model's checksum and training
 facts, so the lineage travels with the shipped file.
 """
@@ -104,6 +106,87 @@ def soup_command(run: Path, ingredients: list[dict]) -> str:
     return f"python -m sekd_sfm.train.soup {files} --weights {weights} -o soup.pth"
 
 
+def _file_with_sha(path: Path, sha256: str) -> Path | None:
+    """``path`` if it holds the checkpoint ``sha256`` names, else the embedded model that does (its
+    record may name it relative to another working directory), else None."""
+    for candidate in (path, *EMBEDDED_MODELS.values()):
+        if candidate.is_file() and file_sha256(candidate) == sha256:
+            return candidate
+    return None
+
+
+def average_leaves(soup: list[dict], runs: list[Path], share: float = 1.0) -> list[dict]:
+    """The trained models a weight average is made of, each with its share of the average.
+
+    ``soup``: the ``soup`` record of a ``python -m sekd_sfm.train.soup`` checkpoint. An ingredient
+    is a step model of one of ``runs`` (recognised by checksum among ``run/models/*.pth``), a
+    shipped model (its metadata says how it was trained), or itself an average, resolved in turn
+    (its share split by its own weights). Returns ``[{weight, sha256, run, task}]`` rows for step
+    models and ``[{weight, sha256, file, shipped}]`` for shipped ones (``shipped``: the facts of
+    ``starting_model``); the weights sum to ``share``. SekdError for an ingredient that is none of these.
+    """
+    steps = {file_sha256(path): (Path(run), path.stem)
+             for run in runs for path in sorted((Path(run) / "models").glob("*.pth"))}
+    leaves = []
+    for item in soup:
+        weight = share * item["weight"]
+        if item["sha256"] in steps:
+            run, task = steps[item["sha256"]]
+            leaves.append({"weight": weight, "sha256": item["sha256"], "run": str(run), "task": task})
+            continue
+        path = _file_with_sha(Path(item["file"]), item["sha256"])
+        meta = load_model(path)[1].meta if path else {}
+        if "soup" in meta:
+            leaves += average_leaves(meta["soup"], runs, weight)
+        elif "shipped_from" in meta:
+            leaves.append({"weight": weight, "sha256": item["sha256"], "file": path.name,
+                           "shipped": starting_model(str(path))})
+        else:
+            raise SekdError(f"{item['file']}: an ingredient of this weight average is neither a step model of "
+                            f"{', '.join(Path(r).name for r in runs)} nor a shipped model nor an average of such; "
+                            "name the run it comes from")
+    return leaves
+
+
+def average_runs(leaves: list[dict], runs: list[Path]) -> tuple[list[dict], list[dict]]:
+    """The training behind an average's leaves: ``(run rows, shipped models)``, each once.
+
+    A run row ``{run, name, until, command, seed, init, wall_seconds}`` covers the run up to the
+    latest of its steps the average uses (``until``), including the runs whose step models other
+    runs start from (``init_weights``); ``wall_seconds`` is its ``train.log`` time to there. The
+    shipped models (leaves, or starting models of the runs) come with their own recorded facts.
+    """
+    steps = {file_sha256(path, 64): (str(run), path.stem)
+             for run in runs for path in sorted((Path(run) / "models").glob("*.pth"))}
+    needed: dict[str, list[str]] = {}
+    shipped: dict[str, dict] = {leaf["shipped"]["sha256"]: leaf["shipped"] for leaf in leaves if "shipped" in leaf}
+    todo = [(leaf["run"], leaf["task"]) for leaf in leaves if "run" in leaf]
+    while todo:
+        run, task = todo.pop()
+        needed.setdefault(run, []).append(task)
+        init = starting_model(load_run_config(Path(run) / "config.yaml").init_weights)
+        if init and init.get("sha256") in steps:
+            todo.append(steps[init["sha256"]])
+        elif init and "shipped_from" in init:
+            shipped.setdefault(init["sha256"], init)
+    rows = []
+    for run, tasks in sorted(needed.items(), key=lambda item: Path(item[0]).name):
+        config = load_run_config(Path(run) / "config.yaml")
+        state = json.loads((Path(run) / "state.json").read_text())
+        done = state["done"]
+        until = max(tasks, key=done.index)
+        copied = sorted({t["labels"] for t in state.get("tasks", []) if t.get("labels") and t["labels"] not in done})
+        init = starting_model(config.init_weights)
+        made_from = steps.get(init.get("sha256")) if init else None
+        rows.append({"run": Path(run).name, "until": until, "tasks": done[:done.index(until) + 1],
+                     "labels_copied": copied, "threads": config.num_threads,
+                     "command": evolve_command(config, Path(run).name), "seed": config.seed,
+                     "init": (f"`{made_from[1]}` of `{Path(made_from[0]).name}`" if made_from else
+                              f"`{init['file']}` (SHA-256 `{init.get('sha256', '?')[:16]}`)" if init else "random weights"),
+                     "wall_seconds": round(training_wall_seconds(Path(run) / "train.log", f"validation after {until}"))})
+    return rows, list(shipped.values())
+
+
 def starting_model(init_weights: str) -> dict | None:
     """What a run started from: file name, SHA-256 and, for a shipped model, how it was trained.
 
@@ -172,7 +255,146 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODELS["own"], card: Path | None
     init = starting_model(config.init_weights)
     if init:
         meta["init"] = init
+    if guard and guard_error is not None:
+        meta["graffiti_1_2_corner_error"] = guard_error
     dest = Path(dest)
+    _save_shipped(net, meta, dest, source, guard, config)
+    if card is not None:
+        extra = [{"task": f"`{shown}` (shipped)", **meta["validation"]}]
+        if reference:
+            extra.append({"task": f"`{Path(reference).name}` (reference)", **validate_net(load_model(reference)[0], config)})
+        write_atomic(Path(card), model_card(run, dest, meta, extra))
+    return dest
+
+
+def soup_commands(soup: list[dict], output: str, runs: list[Path]) -> list[str]:
+    """The ``python -m sekd_sfm.train.soup`` commands that rebuild a (nested) average, innermost first.
+
+    Step models are named ``RUN/models/TASK.pth`` (RUN: the run folder's name), shipped models
+    and inner averages by file name.
+    """
+    steps = {file_sha256(path): f"{Path(run).name}/models/{path.name}"
+             for run in runs for path in sorted((Path(run) / "models").glob("*.pth"))}
+    commands, names = [], []
+    for item in soup:
+        name = steps.get(item["sha256"], Path(item["file"]).name)
+        path = _file_with_sha(Path(item["file"]), item["sha256"])
+        if item["sha256"] not in steps and path:
+            inner = load_model(path)[1].meta.get("soup")
+            if inner:
+                commands += soup_commands(inner, name, runs)
+        names.append(name)
+    weights = " ".join(f"{item['weight']:g}" for item in soup)
+    return [*commands, f"python -m sekd_sfm.train.soup {' '.join(names)} --weights {weights} -o {output}"]
+
+
+def ship_average(runs: list[Path], average: Path, dest: Path = EMBEDDED_MODELS["own"], card: Path | None = None,
+                 reference: Path | None = None, guard: bool = True) -> Path:
+    """Ship a weight average of models from several runs (and shipped models); write its card; return ``dest``.
+
+    ``average``: a ``python -m sekd_sfm.train.soup`` checkpoint whose ingredients (nested averages
+    included) are step models of ``runs`` or shipped models (``average_leaves``). The checkpoint
+    records every ingredient's share, the runs behind them (configuration, steps, starting model,
+    wall time from ``train.log``) and the commands that rebuild the average.
+    """
+    runs = [Path(run) for run in runs]
+    net, info = load_model(average)
+    if "soup" not in info.meta:
+        raise SekdError(f"{average}: not a weight average (python -m sekd_sfm.train.soup); ship a run's own model "
+                        "with one run folder")
+    leaves = average_leaves(info.meta["soup"], runs)
+    run_rows, shipped = average_runs(leaves, runs)
+    first = next((leaf for leaf in leaves if "run" in leaf), None)
+    if first is None:
+        raise SekdError(f"{average}: no ingredient is a step model of the runs given; name the runs it comes from")
+    config = load_run_config(Path(first["run"]) / "config.yaml")
+    seconds = sum(row["wall_seconds"] for row in run_rows)
+    seconds += sum(item.get("wall_seconds", 0) + (_lineage_seconds(item.get("init")) or 0) for item in shipped)
+    shown = Path(average).name
+    meta = {"schedule": config.schedule, "seed": config.seed, "config": config.as_dict(),  # the first run's
+            "average_of": leaves, "runs": run_rows, "shipped_ingredients": shipped,
+            "average_commands": soup_commands(info.meta["soup"], shown, runs), "wall_seconds": seconds,
+            "shipped_from": " + ".join(row["run"] for row in run_rows), "source": shown,
+            "source_sha256": info.sha256, "data": _display_path(config.images),
+            "command": f"a weight average of {len(leaves)} models (python -m sekd_sfm.train.soup); see its model card"}
+    _save_shipped(net, meta, Path(dest), Path(average), guard, config)
+    if card is not None:
+        extra = [{"task": f"`{shown}` (shipped)", **meta["validation"]}]
+        if reference:
+            extra.append({"task": f"`{Path(reference).name}` (reference)", **validate_net(load_model(reference)[0], config)})
+        write_atomic(Path(card), average_card(Path(dest), meta, extra))
+    return Path(dest)
+
+
+def _share_rows(meta: dict) -> list[str]:
+    rows = ["| share | model | trained |", "|---|---|---|"]
+    for leaf in meta["average_of"]:
+        if "run" in leaf:
+            rows.append(f"| {leaf['weight']:.3f} | `{leaf['task']}` of run `{Path(leaf['run']).name}` | see Runs |")
+        else:
+            facts = leaf["shipped"]
+            rows.append(f"| {leaf['weight']:.3f} | `{leaf['file']}`, SHA-256 `{facts['sha256']}`: the model shipped "
+                        f"from `{facts.get('shipped_from', '?')}` (`{facts.get('source', '?')}`) | "
+                        f"{facts.get('wall_seconds', 0) / 3600:.2f} h, by `{facts.get('command', '?')}` |")
+    return rows
+
+
+def average_card(model: Path, meta: dict, extra: list[dict] = ()) -> str:
+    """Markdown card of a shipped multi-run average: shares, runs, commands, wall time, validation, checksum."""
+    config = meta["config"]
+    lines = [
+        "# Model card: `own`, the embedded SEKD model trained by this project (`--model own`)",
+        "",
+        "Generated by `python -m sekd_sfm.train.ship RUN [RUN ...] --which AVERAGE.pth` from the run folders of",
+        "`sekd evolve` training named below (kept out of the repository); every figure below is read from them.",
+        "",
+        "| | |",
+        "|---|---|",
+        f"| file | `sekd_sfm/models/{model.name}` ({model.stat().st_size:,} bytes, fp32) |",
+        f"| SHA-256 | `{file_sha256(model, 64)}` |",
+        f"| network | SEKD (the paper's architecture), {count_parameters(SEKDNet()):,} parameters |",
+        (f"| chosen | `{meta['source']}` = a weight average of {len(meta['average_of'])} trained models (below); "
+         f"validation MMA@3 {meta['validation']['mma3']:.3f} |"),
+        *([(f"| regression guard | v_graffiti 1-2 mean corner error {meta['graffiti_1_2_corner_error']:.2f} px "
+            f"(must stay under {GUARD_PX:g} px) |")] if "graffiti_1_2_corner_error" in meta else []),
+        f"| data | `{meta['data']}`: 256 unlabeled COCO photos, no labels of any kind |",
+        (f"| wall time | {meta['wall_seconds'] / 3600:.2f} h of training on a 2-core CPU (no GPU) from random weights, "
+         "summed over the runs below (their threads: below) and the shipped model(s) in it or behind them, "
+         "each counted once |"),
+        *[f"| average | `{command}` (no training: a weighted mean of the weights) |" for command in meta["average_commands"]],
+        "",
+        "## Ingredients (their shares of the average)",
+        "",
+        *_share_rows(meta),
+        "",
+        "## Runs",
+        "",
+        "Each run's configuration as `sekd evolve` flags (`config.yaml` in its folder), the steps it ran up to",
+        "the model used, and what it started from.",
+        "",
+        "| run | seed | steps | starts from | threads | wall time | configuration |",
+        "|---|---|---|---|---|---|---|",
+        *[(f"| `{row['run']}` | {row['seed']} | {', '.join(row['tasks'])}"
+           f"{''.join(f' (labels `{name}` copied in from another run)' for name in row['labels_copied'])} | "
+           f"{row['init']} | {row['threads']} | {row['wall_seconds'] / 3600:.2f} h | `{row['command']}` |")
+          for row in meta["runs"]],
+        "",
+        "## Validation",
+        "",
+        (f"Homography sequences of the shared data at long side {config['val_long_side']} px, "
+         f"top {config['val_max_keypoints']} keypoints, mutual NN (`train/validate.py`), scored by `ship.py`."),
+        "",
+        *_validation_rows(Path("/nonexistent"), list(extra)),
+        "",
+        "Benchmarks against the authors' model, the classics and the kornia peers: below, the README's",
+        "Figures section and [benchmarks.md](benchmarks.md).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _save_shipped(net: SEKDNet, meta: dict, dest: Path, source: Path, guard: bool, config: TrainConfig) -> None:
+    """Write ``dest`` atomically with ``meta`` + its guard error and validation; SekdError if too large or unguarded."""
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f"{dest.name}.{os.getpid()}.tmp")
     torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)  # size first: scoring takes minutes
@@ -180,18 +402,12 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODELS["own"], card: Path | None
     tmp.unlink()
     if size > MAX_BYTES:
         raise SekdError(f"{source}: {dest.name} would be {size} bytes, over {MAX_BYTES}; ship a smaller model")
-    if guard:
-        meta["graffiti_1_2_corner_error"] = guard_error if guard_error is not None else _check_guard(source)
+    if guard and "graffiti_1_2_corner_error" not in meta:
+        meta["graffiti_1_2_corner_error"] = _check_guard(source)
     # Score the shipped checkpoint itself: step models (b) carry no validation of their own.
     meta["validation"] = validate_net(net, config)
     torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)
     tmp.replace(dest)
-    if card is not None:
-        extra = [{"task": f"`{shown}` (shipped)", **meta["validation"]}]
-        if reference:
-            extra.append({"task": f"`{Path(reference).name}` (reference)", **validate_net(load_model(reference)[0], config)})
-        write_atomic(Path(card), model_card(run, dest, meta, extra))
-    return dest
 
 
 def graffiti_corner_error(weights: Path | None = None) -> float:
@@ -281,6 +497,8 @@ def _chosen_row(meta: dict) -> str:
     if "average" in meta:
         parts = " + ".join(f"{item['weight']:g} x `{item['task']}`" for item in meta["average"])
         return f"| chosen | `{meta['source']}` = the weighted average {parts} of the run's step models; {score} |"
+    if "task" not in meta:  # a checkpoint that does not say which step made it (e.g. a copied model)
+        return f"| chosen | `{meta['source']}`; {score} |"
     return (f"| chosen | `{meta['source']}` = the model after `{meta['task']}` (round {meta['round']}, step "
             f"{meta['step']}); {score} |")
 
@@ -375,7 +593,9 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("run", type=Path, help="run folder of sekd evolve")
+    parser.add_argument("run", type=Path, nargs="+",
+                        help="run folder of sekd evolve; several for a weight average of models from several runs "
+                             "(--which AVERAGE.pth, whose ingredients may also be shipped models or averages)")
     parser.add_argument("--which", default="best.pth",
                         help="checkpoint in the run folder (default best.pth), auto: the best-validated step "
                              "model that passes the regression guard, or a weight average of the run's step models "
@@ -389,7 +609,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        dest = ship_model(args.run, args.dest, args.card, args.which, args.reference, guard=not args.no_guard)
+        if len(args.run) > 1:
+            dest = ship_average(args.run, Path(args.which), args.dest, args.card, args.reference, guard=not args.no_guard)
+        else:
+            dest = ship_model(args.run[0], args.dest, args.card, args.which, args.reference, guard=not args.no_guard)
     except SekdError as exc:
         raise SystemExit(f"error: {exc}") from None
     print(f"{dest}: {dest.stat().st_size:,} bytes, sha256 {file_sha256(dest, 64)}")
