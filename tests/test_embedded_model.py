@@ -319,3 +319,14 @@ def test_ship_average_refuses_an_ingredient_of_unknown_training(tmp_path, two_ru
     with pytest.raises(SekdError, match="not a weight average"):
         ship.ship_average([run, run_b], run / "models/r2_d.pth", tmp_path / "m.pth")
     assert not (tmp_path / "m.pth").exists()
+
+
+def test_ship_command_names_several_runs_and_fails_with_one_error_line(tmp_path, two_runs):
+    from sekd_sfm.train.soup import average_checkpoints
+
+    run, run_b = two_runs
+    soup = average_checkpoints([run / "models/r2_d.pth", AUTHORS], tmp_path / "soup.pth")
+    with pytest.raises(SystemExit) as exc:
+        ship.main([str(run), str(run_b), "--which", str(soup), "--dest", str(tmp_path / "m.pth")])
+    assert str(exc.value).startswith("Error: ") and "\n" not in str(exc.value)
+    assert "neither a step model of run, run_b" in str(exc.value) and not (tmp_path / "m.pth").exists()

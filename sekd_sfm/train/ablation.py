@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         candidates = ablation_candidates(args.baseline, args.ablations)
     except SekdError as exc:
-        raise SystemExit(f"error: {exc}") from None
+        raise SystemExit(f"Error: {exc}") from None
     for c in candidates:
         print(f"{c.label}=sekd:{c.path}")
 

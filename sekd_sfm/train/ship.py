@@ -614,7 +614,7 @@ def main(argv: list[str] | None = None) -> None:
         else:
             dest = ship_model(args.run[0], args.dest, args.card, args.which, args.reference, guard=not args.no_guard)
     except SekdError as exc:
-        raise SystemExit(f"error: {exc}") from None
+        raise SystemExit(f"Error: {exc}") from None
     print(f"{dest}: {dest.stat().st_size:,} bytes, sha256 {file_sha256(dest, 64)}")
 
 
