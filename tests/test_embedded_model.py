@@ -97,6 +97,18 @@ def test_ship_refuses_a_checkpoint_that_fails_the_guard(tmp_path, shared, run):
     assert not (tmp_path / "m.pth").exists()
 
 
+def test_ship_measures_the_guard_even_when_the_checkpoint_records_one(tmp_path, shared, run):
+    import torch
+
+    # A copied shipped model's metadata carries its old guard error; the weights here are untrained.
+    checkpoint = torch.load(run / "models" / "untrained.pth", weights_only=True)
+    checkpoint["sekd_sfm"] = {"graffiti_1_2_corner_error": 0.5}
+    torch.save(checkpoint, run / "models" / "stale.pth")
+    with pytest.raises(SekdError, match="v_graffiti 1-2 mean corner error"):
+        ship.ship_model(run, tmp_path / "m.pth", which="models/stale.pth")
+    assert not (tmp_path / "m.pth").exists()
+
+
 @pytest.fixture
 def one_image(tmp_path) -> Path:
     images = tmp_path / "images"

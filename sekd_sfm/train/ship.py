@@ -81,6 +81,17 @@ def _validated_line(meta: dict) -> str | None:
     return f"validation after {meta['task']}" if meta.get("task") else None
 
 
+def step_models(runs: list[Path]) -> dict[str, tuple[Path, str]]:
+    """``{SHA-256 (64 hex digits): (run, task)}`` for the step models ``run/models/*.pth`` of ``runs``."""
+    return {file_sha256(path, 64): (Path(run), path.stem)
+            for run in runs for path in sorted((Path(run) / "models").glob("*.pth"))}
+
+
+def _step_of(steps: dict[str, tuple[Path, str]], sha256: str) -> tuple[Path, str] | None:
+    """The ``(run, task)`` whose checksum begins with ``sha256`` (a soup records 16 digits, a starting model 64)."""
+    return next((step for full, step in steps.items() if full.startswith(sha256)), None)
+
+
 def soup_ingredients(run: Path, soup: list[dict]) -> list[dict]:
     """``[{task, sha256, weight}]``: the step models of ``run`` that a weight average is made of.
 
@@ -88,14 +99,14 @@ def soup_ingredients(run: Path, soup: list[dict]) -> list[dict]:
     are recognised by checksum among ``run/models/*.pth``, wherever the soup was made; SekdError
     for one that is not a step model of the run (the card could not say how it was trained).
     """
-    by_sha = {file_sha256(path): path.stem for path in sorted((Path(run) / "models").glob("*.pth"))}
+    steps = step_models([run])
     ingredients = []
     for item in soup:
-        task = by_sha.get(item["sha256"])
-        if task is None:
+        step = _step_of(steps, item["sha256"])
+        if step is None:
             raise SekdError(f"{item['file']}: an ingredient of this weight average is not a step model of {run} "
                             "(models/*.pth); ship averages of one run's steps")
-        ingredients.append({"task": task, "sha256": item["sha256"], "weight": item["weight"]})
+        ingredients.append({"task": step[1], "sha256": item["sha256"], "weight": item["weight"]})
     return ingredients
 
 
@@ -115,7 +126,8 @@ def _file_with_sha(path: Path, sha256: str) -> Path | None:
     return None
 
 
-def average_leaves(soup: list[dict], runs: list[Path], share: float = 1.0) -> list[dict]:
+def average_leaves(soup: list[dict], runs: list[Path], share: float = 1.0,
+                   steps: dict[str, tuple[Path, str]] | None = None) -> list[dict]:
     """The trained models a weight average is made of, each with its share of the average.
 
     ``soup``: the ``soup`` record of a ``python -m sekd_sfm.train.soup`` checkpoint. An ingredient
@@ -124,20 +136,20 @@ def average_leaves(soup: list[dict], runs: list[Path], share: float = 1.0) -> li
     (its share split by its own weights). Returns ``[{weight, sha256, run, task}]`` rows for step
     models and ``[{weight, sha256, file, shipped}]`` for shipped ones (``shipped``: the facts of
     ``starting_model``); the weights sum to ``share``. SekdError for an ingredient that is none of these.
+    ``steps``: ``step_models(runs)``, if already computed.
     """
-    steps = {file_sha256(path): (Path(run), path.stem)
-             for run in runs for path in sorted((Path(run) / "models").glob("*.pth"))}
+    steps = step_models(runs) if steps is None else steps
     leaves = []
     for item in soup:
         weight = share * item["weight"]
-        if item["sha256"] in steps:
-            run, task = steps[item["sha256"]]
-            leaves.append({"weight": weight, "sha256": item["sha256"], "run": str(run), "task": task})
+        step = _step_of(steps, item["sha256"])
+        if step is not None:
+            leaves.append({"weight": weight, "sha256": item["sha256"], "run": str(step[0]), "task": step[1]})
             continue
         path = _file_with_sha(Path(item["file"]), item["sha256"])
         meta = load_model(path)[1].meta if path else {}
         if "soup" in meta:
-            leaves += average_leaves(meta["soup"], runs, weight)
+            leaves += average_leaves(meta["soup"], runs, weight, steps)
         elif "shipped_from" in meta:
             leaves.append({"weight": weight, "sha256": item["sha256"], "file": path.name,
                            "shipped": starting_model(str(path))})
@@ -148,42 +160,48 @@ def average_leaves(soup: list[dict], runs: list[Path], share: float = 1.0) -> li
     return leaves
 
 
-def average_runs(leaves: list[dict], runs: list[Path]) -> tuple[list[dict], list[dict]]:
+def average_runs(leaves: list[dict], runs: list[Path],
+                 steps: dict[str, tuple[Path, str]] | None = None) -> tuple[list[dict], list[dict]]:
     """The training behind an average's leaves: ``(run rows, shipped models)``, each once.
 
-    A run row ``{run, name, until, command, seed, init, wall_seconds}`` covers the run up to the
-    latest of its steps the average uses (``until``), including the runs whose step models other
-    runs start from (``init_weights``); ``wall_seconds`` is its ``train.log`` time to there. The
-    shipped models (leaves, or starting models of the runs) come with their own recorded facts.
+    A run row ``{run, until, tasks, labels_copied, threads, command, seed, init, wall_seconds}``
+    covers the run up to the latest of its steps the average uses (``until``), including the runs
+    whose step models other runs start from (``init_weights``); ``wall_seconds`` is its
+    ``train.log`` time to there. The shipped models (leaves, or starting models of the runs) come
+    with their own recorded facts. ``steps``: ``step_models(runs)``, if already computed.
     """
-    steps = {file_sha256(path, 64): (str(run), path.stem)
-             for run in runs for path in sorted((Path(run) / "models").glob("*.pth"))}
-    needed: dict[str, list[str]] = {}
+    steps = step_models(runs) if steps is None else steps
+    needed: dict[Path, list[str]] = {}
+    starts: dict[Path, tuple[TrainConfig, dict | None]] = {}
     shipped: dict[str, dict] = {leaf["shipped"]["sha256"]: leaf["shipped"] for leaf in leaves if "shipped" in leaf}
-    todo = [(leaf["run"], leaf["task"]) for leaf in leaves if "run" in leaf]
+    todo = [(Path(leaf["run"]), leaf["task"]) for leaf in leaves if "run" in leaf]
     while todo:
         run, task = todo.pop()
         needed.setdefault(run, []).append(task)
-        init = starting_model(load_run_config(Path(run) / "config.yaml").init_weights)
-        if init and init.get("sha256") in steps:
-            todo.append(steps[init["sha256"]])
+        if run in starts:
+            continue
+        config = load_run_config(run / "config.yaml")
+        init = starting_model(config.init_weights)
+        starts[run] = config, init
+        made_from = _step_of(steps, init["sha256"]) if init and "sha256" in init else None
+        if made_from:
+            todo.append(made_from)
         elif init and "shipped_from" in init:
             shipped.setdefault(init["sha256"], init)
     rows = []
-    for run, tasks in sorted(needed.items(), key=lambda item: Path(item[0]).name):
-        config = load_run_config(Path(run) / "config.yaml")
-        state = json.loads((Path(run) / "state.json").read_text())
+    for run, tasks in sorted(needed.items(), key=lambda item: item[0].name):
+        config, init = starts[run]
+        state = json.loads((run / "state.json").read_text())
         done = state["done"]
         until = max(tasks, key=done.index)
         copied = sorted({t["labels"] for t in state.get("tasks", []) if t.get("labels") and t["labels"] not in done})
-        init = starting_model(config.init_weights)
-        made_from = steps.get(init.get("sha256")) if init else None
-        rows.append({"run": Path(run).name, "until": until, "tasks": done[:done.index(until) + 1],
+        made_from = _step_of(steps, init["sha256"]) if init and "sha256" in init else None
+        rows.append({"run": run.name, "until": until, "tasks": done[:done.index(until) + 1],
                      "labels_copied": copied, "threads": config.num_threads,
-                     "command": evolve_command(config, Path(run).name), "seed": config.seed,
-                     "init": (f"`{made_from[1]}` of `{Path(made_from[0]).name}`" if made_from else
+                     "command": evolve_command(config, run.name), "seed": config.seed,
+                     "init": (f"`{made_from[1]}` of `{made_from[0].name}`" if made_from else
                               f"`{init['file']}` (SHA-256 `{init.get('sha256', '?')[:16]}`)" if init else "random weights"),
-                     "wall_seconds": round(training_wall_seconds(Path(run) / "train.log", f"validation after {until}"))})
+                     "wall_seconds": round(training_wall_seconds(run / "train.log", f"validation after {until}"))})
     return rows, list(shipped.values())
 
 
@@ -255,34 +273,37 @@ def ship_model(run: Path, dest: Path = EMBEDDED_MODELS["own"], card: Path | None
     init = starting_model(config.init_weights)
     if init:
         meta["init"] = init
-    if guard and guard_error is not None:
-        meta["graffiti_1_2_corner_error"] = guard_error
     dest = Path(dest)
-    _save_shipped(net, meta, dest, source, guard, config)
+    _save_shipped(net, meta, dest, source, config, guard, guard_error)
     if card is not None:
-        extra = [{"task": f"`{shown}` (shipped)", **meta["validation"]}]
-        if reference:
-            extra.append({"task": f"`{Path(reference).name}` (reference)", **validate_net(load_model(reference)[0], config)})
-        write_atomic(Path(card), model_card(run, dest, meta, extra))
+        write_atomic(Path(card), model_card(run, dest, meta, _card_validations(meta, shown, reference, config)))
     return dest
 
 
-def soup_commands(soup: list[dict], output: str, runs: list[Path]) -> list[str]:
+def _card_validations(meta: dict, shown: str, reference: Path | None, config: TrainConfig) -> list[dict]:
+    """The card's extra validation rows: the shipped checkpoint, and ``reference`` scored the same way."""
+    rows = [{"task": f"`{shown}` (shipped)", **meta["validation"]}]
+    if reference:
+        rows.append({"task": f"`{Path(reference).name}` (reference)", **validate_net(load_model(reference)[0], config)})
+    return rows
+
+
+def soup_commands(soup: list[dict], output: str, runs: list[Path],
+                  steps: dict[str, tuple[Path, str]] | None = None) -> list[str]:
     """The ``python -m sekd_sfm.train.soup`` commands that rebuild a (nested) average, innermost first.
 
     Step models are named ``RUN/models/TASK.pth`` (RUN: the run folder's name), shipped models
-    and inner averages by file name.
+    and inner averages by file name. ``steps``: ``step_models(runs)``, if already computed.
     """
-    steps = {file_sha256(path): f"{Path(run).name}/models/{path.name}"
-             for run in runs for path in sorted((Path(run) / "models").glob("*.pth"))}
+    steps = step_models(runs) if steps is None else steps
     commands, names = [], []
     for item in soup:
-        name = steps.get(item["sha256"], Path(item["file"]).name)
-        path = _file_with_sha(Path(item["file"]), item["sha256"])
-        if item["sha256"] not in steps and path:
-            inner = load_model(path)[1].meta.get("soup")
-            if inner:
-                commands += soup_commands(inner, name, runs)
+        step = _step_of(steps, item["sha256"])
+        name = f"{step[0].name}/models/{step[1]}.pth" if step else Path(item["file"]).name
+        path = None if step else _file_with_sha(Path(item["file"]), item["sha256"])
+        inner = load_model(path)[1].meta.get("soup") if path else None
+        if inner:
+            commands += soup_commands(inner, name, runs, steps)
         names.append(name)
     weights = " ".join(f"{item['weight']:g}" for item in soup)
     return [*commands, f"python -m sekd_sfm.train.soup {' '.join(names)} --weights {weights} -o {output}"]
@@ -302,8 +323,9 @@ def ship_average(runs: list[Path], average: Path, dest: Path = EMBEDDED_MODELS["
     if "soup" not in info.meta:
         raise SekdError(f"{average}: not a weight average (python -m sekd_sfm.train.soup); ship a run's own model "
                         "with one run folder")
-    leaves = average_leaves(info.meta["soup"], runs)
-    run_rows, shipped = average_runs(leaves, runs)
+    steps = step_models(runs)
+    leaves = average_leaves(info.meta["soup"], runs, steps=steps)
+    run_rows, shipped = average_runs(leaves, runs, steps)
     first = next((leaf for leaf in leaves if "run" in leaf), None)
     if first is None:
         raise SekdError(f"{average}: no ingredient is a step model of the runs given; name the runs it comes from")
@@ -313,16 +335,13 @@ def ship_average(runs: list[Path], average: Path, dest: Path = EMBEDDED_MODELS["
     shown = Path(average).name
     meta = {"schedule": config.schedule, "seed": config.seed, "config": config.as_dict(),  # the first run's
             "average_of": leaves, "runs": run_rows, "shipped_ingredients": shipped,
-            "average_commands": soup_commands(info.meta["soup"], shown, runs), "wall_seconds": seconds,
+            "average_commands": soup_commands(info.meta["soup"], shown, runs, steps), "wall_seconds": seconds,
             "shipped_from": " + ".join(row["run"] for row in run_rows), "source": shown,
             "source_sha256": info.sha256, "data": _display_path(config.images),
             "command": f"a weight average of {len(leaves)} models (python -m sekd_sfm.train.soup); see its model card"}
-    _save_shipped(net, meta, Path(dest), Path(average), guard, config)
+    _save_shipped(net, meta, Path(dest), Path(average), config, guard)
     if card is not None:
-        extra = [{"task": f"`{shown}` (shipped)", **meta["validation"]}]
-        if reference:
-            extra.append({"task": f"`{Path(reference).name}` (reference)", **validate_net(load_model(reference)[0], config)})
-        write_atomic(Path(card), average_card(Path(dest), meta, extra))
+        write_atomic(Path(card), average_card(Path(dest), meta, _card_validations(meta, shown, reference, config)))
     return Path(dest)
 
 
@@ -384,7 +403,7 @@ def average_card(model: Path, meta: dict, extra: list[dict] = ()) -> str:
         (f"Homography sequences of the shared data at long side {config['val_long_side']} px, "
          f"top {config['val_max_keypoints']} keypoints, mutual NN (`train/validate.py`), scored by `ship.py`."),
         "",
-        *_validation_rows(Path("/nonexistent"), list(extra)),
+        *_validation_rows(None, list(extra)),
         "",
         "Benchmarks against the authors' model, the classics and the kornia peers: below, the README's",
         "Figures section and [benchmarks.md](benchmarks.md).",
@@ -393,8 +412,11 @@ def average_card(model: Path, meta: dict, extra: list[dict] = ()) -> str:
     return "\n".join(lines)
 
 
-def _save_shipped(net: SEKDNet, meta: dict, dest: Path, source: Path, guard: bool, config: TrainConfig) -> None:
-    """Write ``dest`` atomically with ``meta`` + its guard error and validation; SekdError if too large or unguarded."""
+def _save_shipped(net: SEKDNet, meta: dict, dest: Path, source: Path, config: TrainConfig, guard: bool,
+                  guard_error: float | None = None) -> None:
+    """Write ``dest`` atomically with ``meta`` + its guard error and validation; SekdError if too large or unguarded.
+
+    ``guard_error``: the guard's corner error if already measured (``which="auto"``), else measured here."""
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f"{dest.name}.{os.getpid()}.tmp")
     torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)  # size first: scoring takes minutes
@@ -402,8 +424,8 @@ def _save_shipped(net: SEKDNet, meta: dict, dest: Path, source: Path, guard: boo
     tmp.unlink()
     if size > MAX_BYTES:
         raise SekdError(f"{source}: {dest.name} would be {size} bytes, over {MAX_BYTES}; ship a smaller model")
-    if guard and "graffiti_1_2_corner_error" not in meta:
-        meta["graffiti_1_2_corner_error"] = _check_guard(source)
+    if guard:
+        meta["graffiti_1_2_corner_error"] = guard_error if guard_error is not None else _check_guard(source)
     # Score the shipped checkpoint itself: step models (b) carry no validation of their own.
     meta["validation"] = validate_net(net, config)
     torch.save({"state_dict": net.state_dict(), "sekd_sfm": meta}, tmp)
@@ -460,8 +482,9 @@ def validate_net(net: SEKDNet, config: TrainConfig) -> dict:
                     config.val_max_keypoints, config.val_threshold, config.val_nms_radius, torch.device("cpu"))
 
 
-def _validation_rows(run: Path, extra: list[dict]) -> list[str]:
-    rows = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else []
+def _validation_rows(run: Path | None, extra: list[dict]) -> list[str]:
+    """Validation table rows: the run's ``metrics.json`` (none without a run), then ``extra``."""
+    rows = json.loads((run / "metrics.json").read_text()) if run and (run / "metrics.json").is_file() else []
     rows += extra
     lines = ["| after | MMA@3 | MMA@3 i | MMA@3 v | HA@3 | Avg.HA@1:10 | matches |", "|---|---|---|---|---|---|---|"]
     for r in rows:
