@@ -59,7 +59,6 @@ RUN --mount=type=bind,source=docker/local,target=/tmp/local \
 WORKDIR /opt/sekd
 COPY pyproject.toml README.md ./
 COPY sekd_sfm ./sekd_sfm
-COPY cli ./cli
 RUN --mount=type=bind,source=docker/local,target=/tmp/local \
     if [ -f /tmp/local/ca-bundle.crt ]; then export PIP_CERT=/tmp/local/ca-bundle.crt; fi; \
     pip install --find-links /tmp/local . && rm -rf build *.egg-info

@@ -1,4 +1,4 @@
-"""The fused CPU forward (sekd_sfm.fused) against the eager network: extraction images/s, same run.
+"""The fused CPU forward (sekd_sfm.model.fused) against the eager network: extraction images/s, same run.
 
 For each model (full SEKD, SEKD-Lite) and precision (fp32, and bf16 where the CPU has native
 bf16), builds the fast extractor twice, fused and eager (``SEKD_FUSED=0``), and times
@@ -19,16 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sekd_sfm import fused
+from sekd_sfm.model import fused
 from sekd_sfm.bench.speed import agreement, load_bench_images
-from sekd_sfm.inference import SEKDConfig, SEKDExtractor
-from sekd_sfm.runtime import (
-    cpu_description,
-    cpu_has_fast_bf16,
-    set_num_threads,
-    shared_dir,
-)
-from sekd_sfm.weights import EMBEDDED_MODELS, load_model
+from sekd_sfm.model.inference import SEKDConfig, SEKDExtractor
+from sekd_sfm.runtime import cpu_description, cpu_has_fast_bf16, set_num_threads, shared_dir
+from sekd_sfm.model.weights import EMBEDDED_MODELS, load_model
 
 
 def extractor(net, precision: str, use_fused: bool) -> SEKDExtractor:
@@ -52,8 +47,8 @@ def bench_labels(rounds: int, images: list[np.ndarray]) -> dict:
     """``sekd evolve``'s labelling step (c) (fp32; target view + 4 warps per photo) with the fused and the eager forward."""
     import torch
 
-    from sekd_sfm.fused import fp32_eval_forward
-    from sekd_sfm.network import use_fast_deconv
+    from sekd_sfm.model.fused import fp32_eval_forward
+    from sekd_sfm.model.network import use_fast_deconv
     from sekd_sfm.train.config import TrainConfig
     from sekd_sfm.train.labels import label_one
 

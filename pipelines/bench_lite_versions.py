@@ -5,7 +5,7 @@ Times ``SEKDExtractor`` (fast path, fp32 and ``auto``) for each checkpoint and S
 and reports each rate and its ratio to SIFT's rate in the same round. For comparing Lite
 networks of different shapes, e.g. the embedded version 3 against version 2 from the history:
 
-    git show 9e1b26c:sekd_sfm/models/sekd_lite.pth > /tmp/lite_v2.pth
+    git show 9e1b26c:sekd_sfm/model/checkpoints/sekd_lite.pth > /tmp/lite_v2.pth
     python pipelines/bench_lite_versions.py v2=/tmp/lite_v2.pth v3=lite [--num-threads 2] [-o out.json]
 
 ``lite`` names the embedded model. On a CPU with native bf16, hold torch and oneDNN to AVX2
@@ -19,9 +19,9 @@ import json
 from pathlib import Path
 
 from sekd_sfm.bench.speed import SiftExtractor, load_bench_images, time_method
-from sekd_sfm.inference import SEKDConfig, SEKDExtractor
+from sekd_sfm.model.inference import SEKDConfig, SEKDExtractor
 from sekd_sfm.runtime import cpu_description, set_num_threads, shared_dir
-from sekd_sfm.weights import EMBEDDED_MODELS, load_model
+from sekd_sfm.model.weights import EMBEDDED_MODELS, load_model
 
 
 def main() -> None:

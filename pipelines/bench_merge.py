@@ -27,8 +27,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from sekd_sfm import featurefile as ff
-from sekd_sfm import shards
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import shards
 
 
 def _drop_cache(keep: bool) -> str:

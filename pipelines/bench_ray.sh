@@ -115,7 +115,7 @@ python "$(dirname "$0")/bench_merge.py" "$OUT/local1.h5" --images 2048 --task 64
 RAY_BACKEND_LOG_LEVEL=fatal ip netns exec "$NS" python - "127.0.0.1:$PORT" <<'EOF' | tee -a "$REPORT"
 import logging, pickle, sys, time
 import ray
-from sekd_sfm.cluster import RayOptions, _rows, _stream
+from sekd_sfm.execution.raycluster import RayOptions, _rows, _stream
 ray.init(address=sys.argv[1], log_to_driver=False, logging_level=logging.WARNING)
 class Echo:  # a worker that answers at once with the rows a real worker sends: keys, no errors, its chunk name
     def __call__(self, batch):
@@ -126,7 +126,7 @@ for per_task in (4, 32):  # the driver's cost is per task, so bigger tasks divid
     items = [{"key": f"folder/image_{i:06d}.jpg"} for i in range(n)]
     first = None; count = 0; size = 0; chunks = set()
     with _stream(ray, items, Echo, (), per_task, RayOptions(images_per_task=per_task)) as results:
-        for batch in results:  # as sekd_sfm.cluster._drain reads them
+        for batch in results:  # as sekd_sfm.execution.raycluster._drain reads them
             if first is None:
                 first, cpu0, skip = time.perf_counter(), time.process_time(), len(batch["key"])
             size += len(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))

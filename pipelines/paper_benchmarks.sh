@@ -10,7 +10,7 @@ W=$SHARED/weights/sekd
 SEKD_METHODS=(-m "sekd_authors=sekd:$W/sekd.pth"
               -m "sekd:$W/sekd_wo_affine.pth" -m "sekd:$W/sekd_wo_desc_dist.pth"
               -m "sekd:$W/sekd_wo_desc_rep.pth" -m "sekd:$W/sekd_wo_det_rep.pth")
-if python -c "from sekd_sfm.weights import EMBEDDED_MODELS as m; raise SystemExit(not m['own'].is_file())"; then
+if python -c "from sekd_sfm.model.weights import EMBEDDED_MODELS as m; raise SystemExit(not m['own'].is_file())"; then
   SEKD_METHODS=(-m "sekd_ours=sekd:own" "${SEKD_METHODS[@]}")  # the embedded `own` model (--model own)
 fi
 CLASSIC=(-m sift -m orb -m akaze -m brisk -m kaze)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from sekd_sfm import featurefile as ff
+from sekd_sfm.files import features as ff
 from sekd_sfm.extract import extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.match import MatchConfig, match_features

@@ -21,7 +21,7 @@ from typing import Any
 
 from .errors import SekdError
 from .features import FeatureConfig
-from .inference import SEKDConfig
+from .model.inference import SEKDConfig
 from .match import DEFAULT_RATIO, MatchConfig
 
 

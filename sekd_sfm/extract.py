@@ -12,18 +12,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import cluster, shards
-from . import featurefile as ff
+from .execution import raycluster as cluster
+from .files import shards
+from .files import features as ff
 from .errors import Interrupted, SekdError
 from .features import FeatureConfig, build_extractor
-from .images import (
-    DEFAULT_MAX_PIXELS,
-    ImageReadError,
-    list_images,
-    load_scaled,
-    to_original_pixels,
-)
-from .inference import FastSEKD
+from .files.images import DEFAULT_MAX_PIXELS, ImageReadError, list_images, load_scaled, to_original_pixels
+from .model.inference import FastSEKD
 from .runtime import package_versions, set_num_threads, untune_allocator
 
 logger = logging.getLogger("sekd")
@@ -57,7 +52,7 @@ def _file_attrs(config: FeatureConfig, described: dict, extractor, model_info) -
         "model_sha256": model_info.sha256 if model_info else "",
         "weights": model_info.path if model_info else "",
         "versions": ff.json_attr(package_versions()),
-        # How the network ran (sekd_sfm.fused; SEKD_FUSED=0): the numbers differ only by float round-off.
+        # How the network ran (sekd_sfm.model.fused; SEKD_FUSED=0): the numbers differ only by float round-off.
         "network_forward": _network_forward(extractor),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }

@@ -1,6 +1,6 @@
 """One clear line for any failure that is not a SekdError: OS errors, memory, HDF5 and torch.
 
-The CLI's top-level handler (``cli/main.py``) prints :func:`explain`'s line as ``Error: ...``
+The CLI's top-level handler (``sekd_sfm/cli/main.py``) prints :func:`explain`'s line as ``Error: ...``
 and exits with code 1. Every stage saves finished work before it can fail (parts files,
 per-epoch checkpoints), so the messages can promise that running the same command again
 resumes. ``SEKD_DEBUG=1`` in the environment shows the traceback instead.
@@ -107,7 +107,7 @@ def _saved(output: str | None) -> str:
             done = json.loads((path / "state.json").read_text()).get("done", [])
             return f" ({len(done)} finished training tasks in {path})"
         if path.is_file() and path.suffix.lower() in (".h5", ".hdf5"):
-            from .featurefile import list_keys
+            from .files.features import list_keys
 
             parts = path.with_name(path.name + ".parts")
             more = f", more in {parts}" if parts.is_dir() and any(parts.iterdir()) else ""

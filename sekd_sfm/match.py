@@ -27,9 +27,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from . import cluster
-from . import featurefile as ff
-from . import matchfile as mf
+from .execution import raycluster as cluster
+from .files import features as ff
+from .files import matches as mf
 from .errors import Interrupted, SekdError
 from .pairs import Pair, read_pairs
 from .runtime import package_versions, resolve_device, set_num_threads

@@ -25,9 +25,9 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from . import featurefile as ff
+from .files import features as ff
 from .errors import SekdError
-from .fsio import write_atomic
+from .files.atomic import write_atomic
 from .retrieval import RetrievalConfig, compute_global_descriptors, nearest_neighbors
 
 logger = logging.getLogger("sekd")

@@ -40,10 +40,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from . import featurefile as ff
+from .files import features as ff
 from .errors import SekdError
-from .fsio import atomic_output
-from .locking import exclusive_lock
+from .files.atomic import atomic_output
+from .files.locking import exclusive_lock
 
 logger = logging.getLogger("sekd")
 FORMAT = "sekd-global"

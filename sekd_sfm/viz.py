@@ -14,10 +14,10 @@ import cv2
 import h5py
 import numpy as np
 
-from . import featurefile as ff
-from . import matchfile as mf
+from .files import features as ff
+from .files import matches as mf
 from .errors import SekdError
-from .images import ImageReadError, read_image
+from .files.images import ImageReadError, read_image
 
 logger = logging.getLogger("sekd")
 #: Long side of each image in a picture (pixels); larger images are reduced for drawing.

@@ -27,6 +27,6 @@ def shared() -> Path:
 @pytest.fixture(scope="session")
 def authors_net(shared):
     """The authors' released network, eval mode, CPU."""
-    from sekd_sfm.weights import load_model
+    from sekd_sfm.model.weights import load_model
 
     return load_model(SEKD_WEIGHTS)[0]

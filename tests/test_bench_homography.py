@@ -8,14 +8,9 @@ from click.testing import CliRunner
 from conftest import GRAFFITI, SEKD_WEIGHTS
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm.bench import metrics
-from sekd_sfm.bench.datasets import find_sequences
-from sekd_sfm.bench.homography import (
-    HomographyConfig,
-    evaluate_pair,
-    run_homography_benchmark,
-    summarise,
-)
+from sekd_sfm.evaluation import metrics
+from sekd_sfm.evaluation.datasets import find_sequences
+from sekd_sfm.bench.homography import HomographyConfig, evaluate_pair, run_homography_benchmark, summarise
 from sekd_sfm.bench.methods import Method, parse_method
 from sekd_sfm.errors import SekdError
 
@@ -216,7 +211,7 @@ def test_feature_cache_follows_the_model_file_content(tmp_path, shared):
     import torch
 
     from sekd_sfm.bench.methods import cache_file
-    from sekd_sfm.weights import load_model, save_checkpoint
+    from sekd_sfm.model.weights import load_model, save_checkpoint
 
     weights = tmp_path / "model.pth"
     shutil.copy(SEKD_WEIGHTS, weights)

@@ -445,7 +445,7 @@ def test_retrieval_finds_the_true_neighbours_of_a_generated_street(tmp_path, sha
 
 def test_bench_scale_leaves_a_size_another_process_runs(tmp_path):
     from sekd_sfm.bench.scale.run import ScaleConfig, run_scale_benchmark
-    from sekd_sfm.locking import exclusive_lock
+    from sekd_sfm.files.locking import exclusive_lock
 
     (tmp_path / "n12").mkdir()
     with exclusive_lock(tmp_path / "n12", "benchmark size folder"):  # as a second `sekd bench scale` would hold it

@@ -4,7 +4,7 @@ import json
 from click.testing import CliRunner
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm.bench.metrics import mean_average_accuracy
+from sekd_sfm.evaluation.metrics import mean_average_accuracy
 
 
 def test_sfm_benchmark_two_methods_with_pose_maa(tmp_path, shared):

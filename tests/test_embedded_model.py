@@ -10,13 +10,7 @@ from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.errors import SekdError
 from sekd_sfm.train import ship
-from sekd_sfm.weights import (
-    DEFAULT_MODEL,
-    EMBEDDED_MODEL,
-    EMBEDDED_MODELS,
-    file_sha256,
-    load_model,
-)
+from sekd_sfm.model.weights import DEFAULT_MODEL, EMBEDDED_MODEL, EMBEDDED_MODELS, file_sha256, load_model
 
 OWN = EMBEDDED_MODELS["own"]
 AUTHORS = EMBEDDED_MODELS["authors"]
@@ -35,7 +29,7 @@ def run(tmp_path) -> Path:
 
     import torch
 
-    from sekd_sfm.network import SEKDNet
+    from sekd_sfm.model.network import SEKDNet
 
     folder = tmp_path / "run"
     shutil.copytree(RUN_FILES, folder)

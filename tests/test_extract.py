@@ -15,11 +15,11 @@ from click.testing import CliRunner
 from conftest import SEKD_WEIGHTS
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm import featurefile as ff
+from sekd_sfm.files import features as ff
 from sekd_sfm.errors import SekdError
 from sekd_sfm.extract import extract_features
 from sekd_sfm.features import FeatureConfig
-from sekd_sfm.inference import SEKDConfig
+from sekd_sfm.model.inference import SEKDConfig
 
 
 def textured(seed: int, shape=(120, 160)) -> np.ndarray:

@@ -14,8 +14,8 @@ from click.testing import CliRunner
 from sekd_sfm.cli.main import sekd
 from test_extract import write_images
 
-from sekd_sfm import featurefile as ff
-from sekd_sfm import matchfile as mf
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import matches as mf
 from sekd_sfm.errors import SekdError
 from sekd_sfm.extract import extract_features
 from sekd_sfm.features import FeatureConfig
@@ -277,7 +277,7 @@ def test_second_extract_on_the_same_output_is_refused(tmp_path):
 def test_match_holds_the_lock_of_its_output(tmp_path):
     features = fake_feature_file(tmp_path / "f.h5", 3)
     pairs = write_pairs([("0000.jpg", "0001.jpg")], tmp_path / "p.txt")
-    script = ("import time; from sekd_sfm.locking import exclusive_lock\n"
+    script = ("import time; from sekd_sfm.files.locking import exclusive_lock\n"
               f"with exclusive_lock({str(tmp_path / 'm.h5')!r}):\n print('ok', flush=True); time.sleep(60)")
     holder = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     try:

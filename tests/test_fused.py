@@ -1,16 +1,16 @@
-"""The oneDNN-fused CPU forward (sekd_sfm.fused) computes what the eager network computes."""
+"""The oneDNN-fused CPU forward (sekd_sfm.model.fused) computes what the eager network computes."""
 import numpy as np
 import pytest
 import torch
 from torch import nn
 
-from sekd_sfm import fused as fused_module
-from sekd_sfm.fused import FusedForward, _BnRelu, fused_forward_available
-from sekd_sfm.inference import FastSEKD
-from sekd_sfm.network import SEKDNet, use_fast_deconv
-from sekd_sfm.network_lite import SEKDLiteNet
+from sekd_sfm.model import fused as fused_module
+from sekd_sfm.model.fused import FusedForward, _BnRelu, fused_forward_available
+from sekd_sfm.model.inference import FastSEKD
+from sekd_sfm.model.network import SEKDNet, use_fast_deconv
+from sekd_sfm.model.lite import SEKDLiteNet
 from sekd_sfm.runtime import cpu_has_fast_bf16
-from sekd_sfm.weights import EMBEDDED_MODELS, load_model
+from sekd_sfm.model.weights import EMBEDDED_MODELS, load_model
 
 pytestmark = pytest.mark.skipif(not fused_forward_available(), reason="this PyTorch has no oneDNN fused convolutions")
 
@@ -140,7 +140,7 @@ def test_labels_from_the_fused_forward_match_the_eager_network(authors_net):
     import copy
     import dataclasses
 
-    from sekd_sfm.fused import fp32_eval_forward
+    from sekd_sfm.model.fused import fp32_eval_forward
     from sekd_sfm.train.config import TrainConfig
     from sekd_sfm.train.labels import label_one
 
@@ -159,7 +159,7 @@ def test_labels_from_the_fused_forward_match_the_eager_network(authors_net):
 
 
 def test_eval_forward_keeps_the_eager_network_where_the_fused_one_does_not_apply(monkeypatch):
-    from sekd_sfm.fused import fp32_eval_forward
+    from sekd_sfm.model.fused import fp32_eval_forward
 
     net = SEKDNet()
     assert fp32_eval_forward(net.train(), torch.device("cpu")) == net.forward_train  # BatchNorm in training mode
@@ -204,7 +204,7 @@ def test_bench_speed_reports_the_forward_and_the_fast_paths_agreement(shared, tm
     from click.testing import CliRunner
     from sekd_sfm.cli.main import sekd
 
-    from sekd_sfm import int8
+    from sekd_sfm.model import int8
 
     monkeypatch.setattr(int8, "available", lambda: False)  # no calibration here: tests/test_int8.py covers int8
     out = tmp_path / "speed.json"
@@ -224,7 +224,7 @@ def test_bench_speed_reports_an_int8_runtime_failure_and_times_the_other_paths(s
     from click.testing import CliRunner
     from sekd_sfm.cli.main import sekd
 
-    from sekd_sfm import int8
+    from sekd_sfm.model import int8
 
     def refuse(*args, **kwargs):  # what OpenVINO raises on a CPU it cannot compile the network for
         raise RuntimeError("Exception from src/inference/src/cpp/core.cpp:117:\nno primitive for Deconvolution")

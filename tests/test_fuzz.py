@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm import featurefile as ff
+from sekd_sfm.files import features as ff
 
 COUNT = 200
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

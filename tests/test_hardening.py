@@ -17,16 +17,10 @@ import torch
 from click.testing import CliRunner
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm import featurefile as ff
+from sekd_sfm.files import features as ff
 from sekd_sfm.errors import SekdError
 from sekd_sfm.failures import explain
-from sekd_sfm.images import (
-    ImageReadError,
-    image_size,
-    load_scaled,
-    reduction_factor,
-    to_original_pixels,
-)
+from sekd_sfm.files.images import ImageReadError, image_size, load_scaled, reduction_factor, to_original_pixels
 from sekd_sfm.runtime import resolve_device, set_num_threads
 
 
@@ -433,7 +427,7 @@ def test_resume_of_a_run_without_an_image_record_records_it(stopped_run):
 
 def test_second_run_on_a_locked_run_folder_is_refused(stopped_run):
     holder = subprocess.Popen(
-        [sys.executable, "-c", ("import sys, time; from sekd_sfm.locking import exclusive_lock\n"
+        [sys.executable, "-c", ("import sys, time; from sekd_sfm.files.locking import exclusive_lock\n"
                                 f"with exclusive_lock({str(stopped_run)!r}, what='run folder'):\n"
                                 "    print('locked', flush=True); time.sleep(60)")],
         stdout=subprocess.PIPE, text=True)
@@ -517,7 +511,7 @@ def test_concurrent_evolve_on_one_folder_is_refused(train_images, tmp_path):
 
 
 def test_training_temp_files_are_unique_per_process(tmp_path, monkeypatch):
-    from sekd_sfm import fsio
+    from sekd_sfm.files import atomic as fsio
     from sekd_sfm.train import report
 
     seen, real_replace = [], os.replace
@@ -532,7 +526,7 @@ def test_training_temp_files_are_unique_per_process(tmp_path, monkeypatch):
 
 
 def test_atomic_output_leaves_the_old_file_when_the_writer_fails(tmp_path):
-    from sekd_sfm.fsio import atomic_output
+    from sekd_sfm.files.atomic import atomic_output
 
     target = tmp_path / "sub" / "pairs.txt"
     target.parent.mkdir()

@@ -12,8 +12,8 @@ import pytest
 from click.testing import CliRunner
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm import featurefile as ff
-from sekd_sfm import matchfile as mf
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import matches as mf
 from sekd_sfm.errors import SekdError
 from sekd_sfm.extract import extract_features
 from sekd_sfm.features import FeatureConfig

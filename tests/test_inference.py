@@ -7,7 +7,7 @@ import pytest
 import torch
 from conftest import GRAFFITI
 
-from sekd_sfm.inference import (
+from sekd_sfm.model.inference import (
     FastSEKD,
     SEKDConfig,
     SEKDExtractor,

@@ -23,13 +23,7 @@ from test_reconstruct import (
 
 from sekd_sfm.errors import SekdError
 from sekd_sfm.sfm.colmap import require_pycolmap
-from sekd_sfm.sfm.mapping import (
-    MAPPER_TYPES,
-    default_options,
-    mapper_options,
-    resolve_mapper_type,
-    run_mapper,
-)
+from sekd_sfm.sfm.mapping import MAPPER_TYPES, default_options, mapper_options, resolve_mapper_type, run_mapper
 from sekd_sfm.sfm.reconstruct import ReconstructConfig, reconstruct
 
 pycolmap = require_pycolmap()

@@ -4,9 +4,9 @@ import pytest
 import torch
 from conftest import SEKD_WEIGHTS
 
-from sekd_sfm.inference import FastSEKD
-from sekd_sfm.network import SEKDNet, count_parameters, use_fast_deconv
-from sekd_sfm.weights import load_model
+from sekd_sfm.model.inference import FastSEKD
+from sekd_sfm.model.network import SEKDNet, count_parameters, use_fast_deconv
+from sekd_sfm.model.weights import load_model
 
 
 def test_parameter_count():
@@ -53,7 +53,7 @@ def test_fast_fp32_equals_plain_forward(authors_net):
 
 
 def test_missing_embedded_model_says_to_pass_weights(monkeypatch, tmp_path):
-    from sekd_sfm import weights
+    from sekd_sfm.model import weights
     from sekd_sfm.errors import SekdError
 
     monkeypatch.setitem(weights.EMBEDDED_MODELS, weights.DEFAULT_MODEL, tmp_path / "absent.pth")
@@ -74,7 +74,7 @@ def test_bad_checkpoint_is_one_clear_error(tmp_path):
 
 
 def test_our_checkpoint_round_trips(tmp_path, authors_net):
-    from sekd_sfm.weights import save_checkpoint
+    from sekd_sfm.model.weights import save_checkpoint
 
     path = save_checkpoint(authors_net, tmp_path / "ours.pth", {"round": 3})
     net, info = load_model(path)

@@ -4,7 +4,7 @@ import pytest
 from click.testing import CliRunner
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm import featurefile as ff
+from sekd_sfm.files import features as ff
 from sekd_sfm.errors import SekdError
 from sekd_sfm.pairs import (
     PairsConfig,

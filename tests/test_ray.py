@@ -159,7 +159,7 @@ def _library_extract(cluster, images: Path, out: Path, config: str, ray_options:
     ns, address = cluster
     script = ("import logging, sys\n"
               "logging.basicConfig(level=logging.INFO, format='%(message)s')\n"
-              "from sekd_sfm.cluster import RayOptions\n"
+              "from sekd_sfm.execution.raycluster import RayOptions\n"
               "from sekd_sfm.extract import extract_features\n"
               "from sekd_sfm.features import FeatureConfig\n"
               f"print(extract_features(sys.argv[1], sys.argv[2], FeatureConfig({config}), progress={progress}, "
@@ -317,7 +317,7 @@ def test_node_leaving_mid_run_its_tasks_go_to_the_others(cluster, photos_320, tm
 
 def test_driver_killed_mid_run_resumes_without_redoing(cluster, photos_320, tmp_path):
     """kill -9 of the driver: the chunks the workers wrote stay, and the same command computes only the rest."""
-    from sekd_sfm import featurefile as ff
+    from sekd_sfm.files import features as ff
 
     images, local = photos_320
     out = tmp_path / "ray.h5"
@@ -412,7 +412,7 @@ def test_ray_start_up_notes_go_to_the_debug_log(capfd, caplog):
     """What Ray's C++ core writes to file descriptor 2 while connecting is logged at debug level, not shown."""
     import logging
 
-    from sekd_sfm.cluster import _stderr_to_log
+    from sekd_sfm.execution.raycluster import _stderr_to_log
 
     with caplog.at_level(logging.DEBUG, logger="sekd"), _stderr_to_log():
         os.write(2, b"[W network_util.cc:330] Failed to determine local IP\n")
@@ -463,8 +463,8 @@ def test_workers_send_back_only_keys(local_run, tmp_path):
     """A task's arrays go to a chunk of ``<output>.parts/`` (shared storage); the driver gets ~100 B per item."""
     import torch
 
-    from sekd_sfm import featurefile as ff
-    from sekd_sfm.cluster import _driver_config, _ExtractWorker, _MatchWorker
+    from sekd_sfm.files import features as ff
+    from sekd_sfm.execution.raycluster import _driver_config, _ExtractWorker, _MatchWorker
     from sekd_sfm.extract import describe_config
     from sekd_sfm.features import build_extractor
     from sekd_sfm.match import MatchConfig, batches, check_feature_file
@@ -517,7 +517,7 @@ def test_workers_send_back_only_keys(local_run, tmp_path):
 
 def test_unwritable_part_store_is_a_fatal_error(local_run, tmp_path):
     """A node that cannot write the output's folder stops the run with one error naming the folder and the node."""
-    from sekd_sfm.cluster import _TaskParts
+    from sekd_sfm.execution.raycluster import _TaskParts
 
     blocker = tmp_path / "file"
     blocker.write_text("")
@@ -544,7 +544,7 @@ class _FakeRay:
     ({"CPU": 4.0, "GPU": 8.0}, {"gpus_per_worker": 1}, 4),
 ])
 def test_worker_count_fits_the_cluster(resources, options, expected):
-    from sekd_sfm.cluster import RayOptions, _workers
+    from sekd_sfm.execution.raycluster import RayOptions, _workers
 
     assert _workers(_FakeRay(**resources), RayOptions(**options)) == expected
 
@@ -554,7 +554,7 @@ def test_worker_count_fits_the_cluster(resources, options, expected):
 ])
 def test_tasks_grow_with_the_cluster(base, workers, expected):
     """The driver's cost is per task: beyond 32 workers, tasks grow so it receives as many tasks per second as at 32."""
-    from sekd_sfm.cluster import task_size
+    from sekd_sfm.execution.raycluster import task_size
 
     assert task_size(base, workers) == expected
 
@@ -564,7 +564,7 @@ def test_tasks_grow_with_the_cluster(base, workers, expected):
     ({"CPU": 2.0}, {"gpus_per_worker": 1}, "--gpus-per-worker 1 but the Ray cluster has 0 GPUs"),
 ])
 def test_worker_size_larger_than_the_cluster_is_refused(resources, options, message):
-    from sekd_sfm.cluster import RayOptions, _workers
+    from sekd_sfm.execution.raycluster import RayOptions, _workers
     from sekd_sfm.errors import SekdError
 
     with pytest.raises(SekdError, match=re.escape(message)):
@@ -606,7 +606,7 @@ def test_worker_skips_the_images_the_driver_claimed(local_run, tmp_path):
     """While workers start, the driver extracts from the end of the list; a worker skips those keys."""
     import torch
 
-    from sekd_sfm.cluster import BY_DRIVER, _claims_path, _driver_config, _ExtractWorker
+    from sekd_sfm.execution.raycluster import BY_DRIVER, _claims_path, _driver_config, _ExtractWorker
     from sekd_sfm.extract import describe_config
     from sekd_sfm.features import build_extractor
 
@@ -651,7 +651,7 @@ class _FakeNodes:
     ([("10.0.0.5", 8.0, True)], {"gpus_per_worker": 1.0}, False),  # GPU workers compute otherwise
 ])
 def test_driver_helps_only_with_cores_ray_does_not_hold(monkeypatch, nodes, options, helps):
-    from sekd_sfm import cluster
+    from sekd_sfm.execution import raycluster as cluster
 
     monkeypatch.setattr("sekd_sfm.runtime.usable_cores", lambda: 2)
     cpu_extractor = type("extractor", (), {"device": "cpu"})()
@@ -668,7 +668,7 @@ def test_driver_helps_only_with_cores_ray_does_not_hold(monkeypatch, nodes, opti
     ([("10.0.0.5", 8.0, True)], {"merge_while_running": False}, False),  # off
 ])
 def test_driver_merges_while_running_only_with_cores_ray_does_not_hold(monkeypatch, nodes, options, merges):
-    from sekd_sfm import cluster
+    from sekd_sfm.execution import raycluster as cluster
 
     monkeypatch.setattr("sekd_sfm.runtime.usable_cores", lambda: 2)
     assert cluster._merges_while_running(_FakeNodes("127.0.0.1", nodes), cluster.RayOptions(**options)) is merges
@@ -757,7 +757,7 @@ class _ScriptedPool:
 
 
 def _tasks(count: int, size: int) -> list[dict]:
-    from sekd_sfm.cluster import _columns
+    from sekd_sfm.execution.raycluster import _columns
 
     items = [{"key": f"img{i}.jpg"} for i in range(count)]
     return [_columns(items[i:i + size]) for i in range(0, count, size)]
@@ -765,7 +765,7 @@ def _tasks(count: int, size: int) -> list[dict]:
 
 def test_actor_pool_gives_each_task_once_and_the_next_to_whoever_finishes():
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
-    from sekd_sfm.cluster import TASKS_IN_FLIGHT, _pool_results
+    from sekd_sfm.execution.raycluster import TASKS_IN_FLIGHT, _pool_results
 
     tasks = _tasks(9, 2)  # 4 tasks of 2 and one of 1
     assert list(tasks[0]["key"]) == ["img0.jpg", "img1.jpg"] and tasks[0]["key"].dtype == object
@@ -781,7 +781,7 @@ def test_actor_pool_gives_each_task_once_and_the_next_to_whoever_finishes():
 
 def test_actor_pool_with_more_actors_than_tasks():
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
-    from sekd_sfm.cluster import _pool_results
+    from sekd_sfm.execution.raycluster import _pool_results
 
     pool = _ScriptedPool(3, [("back", 0), ("done", 0)])  # actors 1 and 2 never come up: no task waits for them
     assert [r["key"] for r in _pool_results(pool, pool.actors, _tasks(1, 4))] == ["img0.jpg"]
@@ -791,8 +791,8 @@ def test_actor_pool_with_more_actors_than_tasks():
 
 def test_actor_pool_gives_a_dead_workers_tasks_to_the_others_then_takes_it_back(monkeypatch):
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
-    from sekd_sfm import cluster
-    from sekd_sfm.cluster import _pool_results
+    from sekd_sfm.execution import raycluster as cluster
+    from sekd_sfm.execution.raycluster import _pool_results
 
     monkeypatch.setattr(cluster, "REPROBE_SECONDS", 0.0)
 
@@ -809,7 +809,7 @@ def test_actor_pool_gives_a_dead_workers_tasks_to_the_others_then_takes_it_back(
 
 def test_actor_pool_waits_for_its_only_worker_to_come_back(monkeypatch, caplog):
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
-    from sekd_sfm import cluster
+    from sekd_sfm.execution import raycluster as cluster
 
     monkeypatch.setattr(cluster, "REPROBE_SECONDS", 0.0)
     pool = _ScriptedPool(1, [("back", 0), ("done", 0), ("die", 0), ("lost", 0), ("lost", 0), ("back", 0),

@@ -8,7 +8,7 @@ import pytest
 from click.testing import CliRunner
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm import featurefile as ff
+from sekd_sfm.files import features as ff
 from sekd_sfm.bench.strecha import rotation_angle_deg
 from sekd_sfm.errors import SekdError
 from sekd_sfm.extract import describe_config
@@ -392,7 +392,7 @@ def test_run_mapper_in_a_child_gives_the_same_model(synthetic, tmp_path):
 
 
 def test_leftovers_of_a_killed_run_are_removed_and_the_folder_is_locked(synthetic, tmp_path):
-    from sekd_sfm.locking import exclusive_lock
+    from sekd_sfm.files.locking import exclusive_lock
 
     _, images, out, _ = synthetic
     work = tmp_path / "out"

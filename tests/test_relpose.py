@@ -7,12 +7,7 @@ import pytest
 from click.testing import CliRunner
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm.bench.strecha import (
-    angle_between_deg,
-    read_cameras,
-    relative_pose,
-    rotation_angle_deg,
-)
+from sekd_sfm.bench.strecha import angle_between_deg, read_cameras, relative_pose, rotation_angle_deg
 
 PAIR = ("0004.jpg", "0006.jpg")
 

@@ -10,7 +10,7 @@ import torch
 from click.testing import CliRunner
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm import featurefile as ff
+from sekd_sfm.files import features as ff
 from sekd_sfm import retrieval
 from sekd_sfm.errors import SekdError
 from sekd_sfm.pairs import PairsConfig, make_pairs, read_pairs

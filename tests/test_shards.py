@@ -8,9 +8,9 @@ import pytest
 from hloc_readers import get_keypoints, list_h5_names
 from test_files_linear import feature_attrs, features_of
 
-from sekd_sfm import featurefile as ff
-from sekd_sfm import shards
-from sekd_sfm.cluster import _TaskParts
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import shards
+from sekd_sfm.execution.raycluster import _TaskParts
 from sekd_sfm.errors import SekdError
 
 

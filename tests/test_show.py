@@ -12,8 +12,8 @@ import pytest
 from click.testing import CliRunner
 from sekd_sfm.cli.main import sekd
 
-from sekd_sfm import featurefile as ff
-from sekd_sfm import matchfile as mf
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import matches as mf
 from sekd_sfm.viz import INLIER, OUTLIER, draw_pair, inlier_mask
 
 SIZES = {"a/x.jpg": (300, 200), "y.png": (240, 260)}  # width, height

@@ -4,7 +4,7 @@ Scores every (detector, descriptor) combination of two checkpoints with the trai
 validation (the shared homography sequences at 320 px, top 500 keypoints, mutual NN):
 keypoints from one network's probability map, descriptors sampled from the other's map.
 
-    python pipelines/train_default/cross_eval.py sekd_sfm/models/sekd_own.pth ../shared/weights/sekd/sekd.pth
+    python pipelines/train_default/cross_eval.py sekd_sfm/model/checkpoints/sekd_own.pth ../shared/weights/sekd/sekd.pth
 
 Prints a Markdown table of MMA@3 (overall / i / v) and Avg.HA@1:10 per combination.
 """
@@ -15,15 +15,9 @@ from pathlib import Path
 
 import torch
 
-from sekd_sfm.inference import nms_keypoints, sample_descriptors
-from sekd_sfm.train.validate import (
-    find_sequences,
-    load_sequence,
-    mutual_matches,
-    pair_scores,
-    summarise,
-)
-from sekd_sfm.weights import load_model
+from sekd_sfm.model.inference import nms_keypoints, sample_descriptors
+from sekd_sfm.train.validate import find_sequences, load_sequence, mutual_matches, pair_scores, summarise
+from sekd_sfm.model.weights import load_model
 
 SETS = ["data/homography/hpatches/*", "data/homography/oxford/*"]
 

@@ -11,5 +11,5 @@ source "$HERE/_run_dir.sh"
 export SEKD_SHARED=$(cd "${SEKD_SHARED:-$ROOT/../shared}" && pwd)
 RUN=$(run_dir "${RUN:-default}")
 cd "$ROOT"
-python -m sekd_sfm.train.ship "$RUN" --dest sekd_sfm/models/sekd_own.pth \
+python -m sekd_sfm.train.ship "$RUN" --dest sekd_sfm/model/checkpoints/sekd_own.pth \
     --card docs/model_card.md --reference "$SEKD_SHARED/weights/sekd/sekd.pth" "$@"

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SekdError
-from ..fsio import write_atomic
+from ..files.atomic import write_atomic
 from ..runtime import package_versions, shared_dir, timing_context
 from .methods import Method, evaluate_each
 
@@ -80,7 +80,7 @@ def warp_photos(photos: list[Path], folder: Path, config: LocalizationConfig) ->
     """Each photo (grayscale, PNG) and its warp into ``folder``; returns ``"i/0.png i/1.png" -> H``."""
     import cv2
 
-    from ..images import read_image
+    from ..files.images import read_image
 
     rng = np.random.default_rng(config.seed)
     folder.mkdir(parents=True, exist_ok=True)
@@ -99,10 +99,10 @@ def warp_photos(photos: list[Path], folder: Path, config: LocalizationConfig) ->
 def _evaluate(method: Method, images: Path, work: Path, homographies: dict, config: LocalizationConfig) -> dict:
     import h5py
 
-    from .. import matchfile as mf
+    from ..files import matches as mf
     from ..extract import extract_features
     from ..features import FeatureConfig
-    from ..inference import SEKDConfig
+    from ..model.inference import SEKDConfig
     from ..match import MatchConfig, match_features
     from ..pairs import write_pairs
     from ..sfm.refine import refine_keypoints, refine_summary

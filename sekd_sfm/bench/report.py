@@ -6,8 +6,8 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
-from ..fsio import write_atomic
-from .metrics import THRESHOLDS
+from ..files.atomic import write_atomic
+from ..evaluation.metrics import THRESHOLDS
 
 
 def _pct(value) -> str:

@@ -15,9 +15,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..images import list_images, read_image
-from ..inference import SEKDConfig, SEKDExtractor, nms_keypoints, sample_descriptors
-from ..network import SEKDNet
+from ..files.images import list_images, read_image
+from ..model.inference import SEKDConfig, SEKDExtractor, nms_keypoints, sample_descriptors
+from ..model.network import SEKDNet
 from ..runtime import cpu_description, package_versions, set_num_threads
 
 
@@ -104,7 +104,7 @@ def agreement(reference: list[dict], other: list[dict]) -> dict[str, float]:
 
 def embedded_lite() -> nn.Module | None:
     """The embedded SEKD-Lite network, or None when this installation has none."""
-    from ..weights import EMBEDDED_MODELS, load_model
+    from ..model.weights import EMBEDDED_MODELS, load_model
 
     path = EMBEDDED_MODELS.get("lite")
     return load_model(path)[0] if path is not None and path.is_file() else None
@@ -132,7 +132,7 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
         "sekd fast auto": lambda: SEKDExtractor(net, config),
         "opencv sift": lambda: SiftExtractor(max_keypoints),
     }
-    from .. import int8
+    from ..model import int8
     from ..failures import first_line
     if int8.available():  # optional extra; its one-time calibration runs before timing (cached per weights)
         factories["sekd int8"] = lambda: SEKDExtractor(net, SEKDConfig(**{**config.as_dict(), "precision": "int8"}))
@@ -173,7 +173,7 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
     return {
         "images": count, "size": [height, width], "threads": threads, "gflop_per_image": gflop,
         "precision_auto": methods[fast].model.precision,
-        # The fast paths' forward (sekd_sfm.fused; SEKD_FUSED=0 turns it off): it changes their rates.
+        # The fast paths' forward (sekd_sfm.model.fused; SEKD_FUSED=0 turns it off): it changes their rates.
         "fast_forward": "fused" if methods[fast].model.fused is not None else "eager",
         "images_per_s": rates,
         "failed": failed,  # path -> error, for optional paths that could not run here

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SekdError
-from .metrics import rotation_angle_deg
+from ..evaluation.metrics import rotation_angle_deg
 
 
 @dataclass(frozen=True)

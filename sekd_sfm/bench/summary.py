@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ..fsio import write_atomic
+from ..files.atomic import write_atomic
 
 COLUMNS = ("avg_ha_all", "avg_ha_i", "avg_ha_v", "avg_ha_runs", "mma3", "pose_maa", "pose_maa_runs", "sfm_registered",
            "sfm_maa", "sfm_auc1", "sfm_rot_deg", "sfm_time_s")

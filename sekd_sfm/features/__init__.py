@@ -9,10 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ..errors import SekdError
-from ..images import DEFAULT_MAX_PIXELS
-from ..inference import SEKDConfig, SEKDExtractor
+from ..files.images import DEFAULT_MAX_PIXELS
+from ..model.inference import SEKDConfig, SEKDExtractor
 from ..runtime import resolve_device
-from ..weights import ModelInfo, file_sha256, load_model
+from ..model.weights import ModelInfo, file_sha256, load_model
 from .classic import CLASSIC_FEATURES, OpenCVExtractor
 from .peers import PEER_FEATURES, KorniaPeer
 

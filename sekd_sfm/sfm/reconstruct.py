@@ -24,14 +24,14 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from .. import cluster
-from .. import featurefile as ff
-from .. import matchfile as mf
+from ..execution import raycluster as cluster
+from ..files import features as ff
+from ..files import matches as mf
 from ..errors import SekdError
 from ..extract import extract_features
 from ..features import FeatureConfig
-from ..images import list_images
-from ..locking import exclusive_lock
+from ..files.images import list_images
+from ..files.locking import exclusive_lock
 from ..match import MatchConfig, match_features
 from ..pairs import PairsConfig, make_pairs, read_pairs, write_pairs
 from ..runtime import package_versions
@@ -146,7 +146,7 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
     with exclusive_lock(out, what="reconstruction folder"):
         clean_scratch(out)  # left by a killed run: nobody else can be using them while we hold the lock
         clean_logs(out / "colmap.log")
-        # executor / ray_options: where extraction and matching run (sekd_sfm.cluster).
+        # executor / ray_options: where extraction and matching run (sekd_sfm.execution.raycluster).
         stages = {"overwrite": overwrite, "num_threads": num_threads, "progress": progress, "executor": executor,
                   "ray_options": ray_options}
         return _locked(image_dir, out, config, stages, features, matches)

@@ -36,11 +36,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .. import featurefile as ff
-from .. import matchfile as mf
+from ..files import features as ff
+from ..files import matches as mf
 from ..errors import SekdError
-from ..fsio import atomic_output
-from ..images import ImageReadError, load_scaled, to_resized_pixels
+from ..files.atomic import atomic_output
+from ..files.images import ImageReadError, load_scaled, to_resized_pixels
 from ..runtime import package_versions
 
 logger = logging.getLogger("sekd")

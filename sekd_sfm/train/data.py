@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from ..errors import SekdError
-from ..images import ImageReadError, list_images, read_image, resize_max_side
+from ..files.images import ImageReadError, list_images, read_image, resize_max_side
 from .config import TrainConfig
 
 #: Stable integer codes for the random streams of each step kind.

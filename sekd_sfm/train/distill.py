@@ -46,14 +46,14 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..errors import SekdError
-from ..fsio import atomic_output, write_atomic
-from ..fused import fp32_eval_forward
-from ..inference import nms_keypoints, sample_descriptors
-from ..locking import exclusive_lock
-from ..network import SEKDNet, use_fast_deconv
-from ..network_lite import DEFAULT_CONFIG, SEKDLiteNet, build_lite
+from ..files.atomic import atomic_output, write_atomic
+from ..model.fused import fp32_eval_forward
+from ..model.inference import nms_keypoints, sample_descriptors
+from ..files.locking import exclusive_lock
+from ..model.network import SEKDNet, use_fast_deconv
+from ..model.lite import DEFAULT_CONFIG, SEKDLiteNet, build_lite
 from ..runtime import allocator_tuned, set_num_threads, shared_dir
-from ..weights import (
+from ..model.weights import (
     DEFAULT_MODEL,
     FULL_ARCHITECTURE,
     LITE_ARCHITECTURE,

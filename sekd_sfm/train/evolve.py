@@ -32,8 +32,8 @@ from pathlib import Path
 import torch
 
 from ..errors import SekdError
-from ..images import list_images
-from ..locking import exclusive_lock
+from ..files.images import list_images
+from ..files.locking import exclusive_lock
 from ..runtime import allocator_tuned
 from .config import RUNTIME_FIELDS, TrainConfig, apply, check_memory, load_run_config
 from .config import validate as validate_config

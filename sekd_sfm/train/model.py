@@ -1,7 +1,7 @@
 """The network as training uses it: creation, fast grouped deconvolutions, frozen copies, export.
 
 State-dict names never change, so every model saved here loads with
-``sekd_sfm.weights.load_model`` and runs in ``sekd extract``.
+``sekd_sfm.model.weights.load_model`` and runs in ``sekd extract``.
 """
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from ..network import BlockDiagonalConvTranspose2d, SEKDNet, use_fast_deconv  # noqa: F401 - re-exported
-from ..weights import FULL_ARCHITECTURE, load_model, save_checkpoint
+from ..model.network import BlockDiagonalConvTranspose2d, SEKDNet, use_fast_deconv  # noqa: F401 - re-exported
+from ..model.weights import FULL_ARCHITECTURE, load_model, save_checkpoint
 
 
 def new_network(seed: int) -> SEKDNet:

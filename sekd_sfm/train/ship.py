@@ -1,7 +1,7 @@
 """Ship a trained run's model as the package's embedded default, with its model card.
 
 ``python -m sekd_sfm.train.ship RUN [--card docs/model_card.md]`` copies ``RUN/best.pth``
-(weights and metadata, fp32) to ``sekd_sfm/models/sekd_own.pth`` and writes a model
+(weights and metadata, fp32) to ``sekd_sfm/model/checkpoints/sekd_own.pth`` and writes a model
 card that says what the model was trained on, how, for how long, and its checksum.
 ``--which`` may also name a weight average of the run's step models
 (``python -m sekd_sfm.train.soup``); the card then lists its ingredients. ``ship RUN RUN ...
@@ -25,9 +25,9 @@ from pathlib import Path
 import torch
 
 from ..errors import SekdError
-from ..network import SEKDNet, count_parameters
+from ..model.network import SEKDNet, count_parameters
 from ..runtime import shared_dir
-from ..weights import EMBEDDED_MODELS, file_sha256, load_model
+from ..model.weights import EMBEDDED_MODELS, file_sha256, load_model
 from .config import TrainConfig, load_run_config, schedule_config
 from .report import finished_rounds, ranked_steps, write_atomic
 
@@ -369,7 +369,7 @@ def average_card(model: Path, meta: dict, extra: list[dict] = ()) -> str:
         "",
         "| | |",
         "|---|---|",
-        f"| file | `sekd_sfm/models/{model.name}` ({model.stat().st_size:,} bytes, fp32) |",
+        f"| file | `sekd_sfm/model/checkpoints/{model.name}` ({model.stat().st_size:,} bytes, fp32) |",
         f"| SHA-256 | `{file_sha256(model, 64)}` |",
         f"| network | SEKD (the paper's architecture), {count_parameters(SEKDNet()):,} parameters |",
         (f"| chosen | `{meta['source']}` = a weight average of {len(meta['average_of'])} trained models (below); "
@@ -575,7 +575,7 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
         "",
         "| | |",
         "|---|---|",
-        f"| file | `sekd_sfm/models/{model.name}` ({model.stat().st_size:,} bytes, fp32) |",
+        f"| file | `sekd_sfm/model/checkpoints/{model.name}` ({model.stat().st_size:,} bytes, fp32) |",
         f"| SHA-256 | `{file_sha256(model, 64)}` |",
         f"| network | SEKD (the paper's architecture), {n_params:,} parameters |",
         _chosen_row(meta),

@@ -14,14 +14,8 @@ import math
 from pathlib import Path
 
 from ..errors import SekdError
-from ..network_lite import SEKDLiteNet
-from ..weights import (
-    FULL_ARCHITECTURE,
-    LITE_ARCHITECTURE,
-    file_sha256,
-    load_model,
-    save_checkpoint,
-)
+from ..model.lite import SEKDLiteNet
+from ..model.weights import FULL_ARCHITECTURE, LITE_ARCHITECTURE, file_sha256, load_model, save_checkpoint
 
 
 def _checked_weights(count: int, weights: list[float] | None) -> list[float]:

@@ -36,9 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import SekdError
-from ...fsio import write_atomic
-from ...locking import exclusive_lock
-from ..metrics import pose_auc
+from ...files.atomic import write_atomic
+from ...files.locking import exclusive_lock
+from ...evaluation.metrics import pose_auc
 from .measure import Measurement, run_measured
 from .scene import SceneConfig, generate_scene, read_covisibility, read_scene
 
@@ -267,7 +267,7 @@ def run_ours(scene_dir: Path, work: Path, config, num_threads: int | None) -> di
     failure = m.error or (m.result or {}).get("failure")
     features = {}
     if (work / "features.h5").is_file():  # which network made the features: the default model may change
-        from ...featurefile import read_attrs
+        from ...files.features import read_attrs
 
         attrs = read_attrs(work / "features.h5")
         features = {"feature": str(attrs.get("feature_type", "")), "model_sha256": str(attrs.get("model_sha256", "")),

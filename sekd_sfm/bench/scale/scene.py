@@ -787,9 +787,7 @@ class Layout:
 
 def layout_scene(config: SceneConfig) -> Layout:
     """The scene of ``config``: block, faces, cameras and photo names (deterministic for the seed)."""
-    from ...runtime import (
-        shared_dir,  # imported here: sekd_sfm.runtime loads torch, which rendering never needs
-    )
+    from ...runtime import shared_dir
 
     folder = Path(config.textures) if config.textures else shared_dir() / "data/train/coco"
     paths = photo_paths(folder)

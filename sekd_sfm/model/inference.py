@@ -16,7 +16,7 @@ from torch import nn
 
 from .fused import fused_or_none
 from .network import STRIDE, SEKDNet, use_fast_deconv
-from .runtime import resolve_device, resolve_precision, tune_allocator
+from ..runtime import resolve_device, resolve_precision, tune_allocator
 
 _DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
 #: Multi-scale pyramid levels stop when a side would be this small or smaller (authors' rule).
@@ -48,7 +48,7 @@ class FastSEKD(nn.Module):
 
     ``fp32`` is exact to float round-off (the grouped transposed convolutions run as
     block-diagonal dense ones, which oneDNN computes several times faster; channels-last layout;
-    on the CPU each residual block runs as two fused oneDNN primitives, ``sekd_sfm.fused``); ``bf16`` keeps bf16 weights and
+    on the CPU each residual block runs as two fused oneDNN primitives, ``sekd_sfm.model.fused``); ``bf16`` keeps bf16 weights and
     activations (native on AVX512-BF16/AMX CPUs) up to the detector's logits, then takes the
     softmax in fp32; both maps are returned as float32.
     """
@@ -57,8 +57,8 @@ class FastSEKD(nn.Module):
         super().__init__()
         self.device = resolve_device(device)
         self.precision = resolve_precision(precision, self.device)
-        if self.precision not in _DTYPES:  # int8 is another runtime: SEKDExtractor builds sekd_sfm.int8.Int8SEKD
-            raise ValueError(f"FastSEKD runs {', '.join(_DTYPES)}; for int8 use SEKDExtractor or sekd_sfm.int8.Int8SEKD")
+        if self.precision not in _DTYPES:  # int8 is another runtime: SEKDExtractor builds sekd_sfm.model.int8.Int8SEKD
+            raise ValueError(f"FastSEKD runs {', '.join(_DTYPES)}; for int8 use SEKDExtractor or sekd_sfm.model.int8.Int8SEKD")
         net = use_fast_deconv(copy.deepcopy(net).eval())
         self.dtype = _DTYPES[self.precision]
         # Folded from the fp32 parameters, before they are rounded to the network's dtype.

@@ -15,7 +15,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-from .errors import SekdError
+from ..errors import SekdError
 
 
 def lock_path(target: Path) -> Path:

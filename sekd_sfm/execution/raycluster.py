@@ -57,10 +57,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import featurefile as ff
-from . import shards
-from .errors import Interrupted, SekdError
-from .fsio import write_atomic
+from ..files import features as ff
+from ..files import shards
+from ..errors import Interrupted, SekdError
+from ..files.atomic import write_atomic
 
 logger = logging.getLogger("sekd")
 
@@ -223,7 +223,7 @@ def _start_local_cluster(ray, init: dict) -> None:
     the user chose a mode or has a token. No dashboard: its processes would take seconds of
     the cores the workers start on.
     """
-    from .runtime import usable_cores
+    from ..runtime import usable_cores
 
     own = not any(os.environ.get(name) for name in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")) \
         and not (Path.home() / ".ray" / "auth_token").exists()
@@ -451,9 +451,9 @@ class _ExtractWorker:
 
     def __init__(self, image_dir: str, config, described: dict, threads: int, output: str, merge: str = "copy",
                  claims: str = ""):
-        from .extract import describe_config
-        from .features import build_extractor
-        from .runtime import set_num_threads
+        from ..extract import describe_config
+        from ..features import build_extractor
+        from ..runtime import set_num_threads
 
         set_num_threads(threads)
         self.image_dir, self.config = Path(image_dir), config
@@ -483,8 +483,8 @@ class _ExtractWorker:
         return self._extract(keys)
 
     def _extract(self, keys: list[str]) -> dict[str, np.ndarray]:
-        from .extract import _features_of, _load
-        from .images import ImageReadError
+        from ..extract import _features_of, _load
+        from ..files.images import ImageReadError
 
         color = getattr(self.extractor, "color", False)
         loads = [self.pool.submit(_load, self.image_dir / key, self.config.resize_max, color, self.config.max_pixels)
@@ -552,9 +552,9 @@ class _DriverHelper:
         self.thread.start()
 
     def _run(self) -> None:
-        from .extract import _features_of, _load
-        from .images import ImageReadError
-        from .runtime import set_num_threads
+        from ..extract import _features_of, _load
+        from ..files.images import ImageReadError
+        from ..runtime import set_num_threads
 
         set_num_threads(self.threads)  # the workers' thread count: identical numbers
         color = getattr(self.extractor, "color", False)
@@ -598,7 +598,7 @@ class _MatchWorker:
     """A Ray actor: opens the feature file once, then matches batches of pairs (``pairs`` column, JSON)."""
 
     def __init__(self, features: str, binary: bool, described: dict, config, threads: int, output: str):
-        from .runtime import set_num_threads
+        from ..runtime import set_num_threads
 
         set_num_threads(threads)
         self.features, self.binary, self.described, self.config = features, binary, described, config
@@ -608,15 +608,15 @@ class _MatchWorker:
     def _open(self):
         import h5py
 
-        from .match import DescriptorCache
-        from .runtime import resolve_device
+        from ..match import DescriptorCache
+        from ..runtime import resolve_device
 
         self.cache = DescriptorCache(h5py.File(self.features, "r"), self.binary,
                                      self.described.get("rootsift", False), resolve_device(self.config.device))
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        from . import matchfile as mf
-        from .match import _match_and_save
+        from ..files import matches as mf
+        from ..match import _match_and_save
 
         groups = [json.loads(str(text)) for text in batch["pairs"]]
         keys = [mf.pair_key(a, b) for group in groups for a, b in group]
@@ -903,7 +903,7 @@ def _free_cores_here(ray) -> float:
     here = ray.util.get_node_ip_address()
     given = sum(node.get("Resources", {}).get("CPU", 0.0) for node in ray.nodes()
                 if node.get("Alive") and node.get("NodeManagerAddress") == here)
-    from .runtime import usable_cores
+    from ..runtime import usable_cores
 
     return usable_cores() - given
 
@@ -977,7 +977,7 @@ def extract_on_ray(image_dir: Path, todo: list[str], config, described: dict, ex
     claims = _claims_path(output)
     import torch
 
-    from .runtime import set_num_threads
+    from ..runtime import set_num_threads
 
     threads = torch.get_num_threads()  # the helper switches to the workers' count; restored below
     ray, owned = _connect(options)
@@ -1009,8 +1009,8 @@ def match_on_ray(features: Path, todo: list[tuple[str, str]], sizes: dict[str, i
                  config, parts: ff.PartStore, output: Path, *, progress: bool = True,
                  options: RayOptions | None = None) -> None:
     """Match the pairs ``todo`` on Ray into ``parts``, in the same batches as the local loop (``match.batches``)."""
-    from . import matchfile as mf
-    from .match import batches
+    from ..files import matches as mf
+    from ..match import batches
 
     options = replace(options or RayOptions(), images_per_task=None)  # a matching task is pair batches, not images
     if not todo:

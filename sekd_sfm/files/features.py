@@ -30,7 +30,7 @@ Writing: crash-safe at linear cost (details and measurements in docs/files.md).
   done and merges the chunks: nothing is lost (an item still in the memory buffer is
   recomputed) or duplicated (a killed merge leaves the chunks; a merge killed after its
   rename is recognised by the ``merge_id`` attribute and its chunks are dropped).
-* One writer per output (``sekd_sfm.locking.exclusive_lock``, taken by
+* One writer per output (``sekd_sfm.files.locking.exclusive_lock``, taken by
   ``extract_features`` / ``match_features``); temporary names carry the writer's PID.
 """
 from __future__ import annotations
@@ -50,8 +50,8 @@ import h5py
 import numpy as np
 
 from . import shards
-from .errors import Interrupted, SekdError
-from .fsio import fsync_replace, remove_folder, temp_name
+from ..errors import Interrupted, SekdError
+from .atomic import fsync_replace, remove_folder, temp_name
 from .locking import exclusive_lock
 
 logger = logging.getLogger("sekd")

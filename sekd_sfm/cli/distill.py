@@ -8,7 +8,7 @@ import click
 from sekd_sfm.errors import SekdError
 from sekd_sfm.train.distill import TRAIN_PRECISIONS, DistillConfig
 from sekd_sfm.train.distill import distill as run_distill
-from sekd_sfm.weights import DEFAULT_MODEL
+from sekd_sfm.model.weights import DEFAULT_MODEL
 
 
 @click.command()

@@ -8,20 +8,9 @@ import click
 from sekd_sfm.features import FEATURE_TYPES
 
 from .match import match_options
-from .options import (
-    feature_options,
-    num_threads_option,
-    runtime_options,
-    weights_option,
-)
+from .options import feature_options, num_threads_option, runtime_options, weights_option
 from .presets import configs_from_context
-from .reconstruct import (
-    camera_options,
-    mapper_option,
-    mapper_type_option,
-    refine_option,
-    seed_option,
-)
+from .reconstruct import camera_options, mapper_option, mapper_type_option, refine_option, seed_option
 
 
 @click.command()

@@ -9,7 +9,7 @@ import click
 from sekd_sfm.bench.methods import with_weights
 from sekd_sfm.bench.speed import benchmark_speed
 from sekd_sfm.runtime import PRECISIONS, shared_dir
-from sekd_sfm.weights import load_model
+from sekd_sfm.model.weights import load_model
 
 from .options import num_threads_option, weights_option
 
@@ -176,10 +176,7 @@ def localization(methods, output, num_images, max_keypoints, seed, num_threads) 
     Example:
       sekd bench localization -m sift -m sekd -m sekd:authors -o out/loc
     """
-    from sekd_sfm.bench.localization import (
-        LocalizationConfig,
-        run_localization_benchmark,
-    )
+    from sekd_sfm.bench.localization import LocalizationConfig, run_localization_benchmark
     from sekd_sfm.bench.methods import parse_method
 
     config = LocalizationConfig(num_images=num_images, max_keypoints=max_keypoints, seed=seed, num_threads=num_threads)

@@ -8,13 +8,7 @@ import click
 from sekd_sfm.confs import output_names
 from sekd_sfm.extract import extract_features
 
-from .options import (
-    executor_options,
-    feature_options,
-    max_pixels_option,
-    runtime_options,
-    weights_option,
-)
+from .options import executor_options, feature_options, max_pixels_option, runtime_options, weights_option
 from .presets import conf_option, configs_from_context, current_conf
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import SekdError
+from ..errors import SekdError
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".tif", ".tiff", ".bmp")
 #: Default pixel cap (``--max-pixels``): larger images are decoded at 1/2, 1/4 or 1/8 size.

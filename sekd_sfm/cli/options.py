@@ -5,9 +5,9 @@ import functools
 
 import click
 
-from sekd_sfm.cluster import EXECUTORS, MERGES, RayOptions
+from sekd_sfm.execution.raycluster import EXECUTORS, MERGES, RayOptions
 from sekd_sfm.features import FEATURE_TYPES
-from sekd_sfm.images import DEFAULT_MAX_PIXELS
+from sekd_sfm.files.images import DEFAULT_MAX_PIXELS
 from sekd_sfm.runtime import DEVICES, PRECISIONS
 
 MODEL_KEY = "sekd.model"
@@ -21,7 +21,7 @@ def _keep_model(ctx: click.Context, _param, value: str | None) -> str | None:
 def _weights_or_model(ctx: click.Context, _param, value: str | None) -> str | None:
     """``--weights PATH`` as given, else the file of ``--model NAME``; both at once is an error."""
     from sekd_sfm.errors import SekdError
-    from sekd_sfm.weights import embedded_model_path
+    from sekd_sfm.model.weights import embedded_model_path
 
     model = ctx.meta.get(MODEL_KEY)
     if model is None:
@@ -36,7 +36,7 @@ def _weights_or_model(ctx: click.Context, _param, value: str | None) -> str | No
 
 def weights_option(f):
     """--weights PATH and --model own|authors, passed on as ``weights`` (None: the default embedded model)."""
-    from sekd_sfm.weights import DEFAULT_MODEL, EMBEDDED_MODELS
+    from sekd_sfm.model.weights import DEFAULT_MODEL, EMBEDDED_MODELS
 
     f = click.option(
         "--weights", type=click.Path(dir_okay=False), default=None, callback=_weights_or_model,

@@ -30,7 +30,7 @@ import json
 import h5py
 import numpy as np
 
-from .errors import SekdError
+from ..errors import SekdError
 
 FORMAT = "sekd-matches"
 FORMAT_VERSION = 1

@@ -75,7 +75,7 @@ def keypoints(features: Path, name: str, output: Path, images: Path | None, max_
     Example:
       sekd show keypoints out/features.h5 a/x.jpg --images photos/ -o kp.png
     """
-    from sekd_sfm import featurefile as ff
+    from sekd_sfm.files import features as ff
     from sekd_sfm.viz import check_inputs, draw_keypoints, load_canvas, write_png
 
     check_inputs(features)

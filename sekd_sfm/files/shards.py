@@ -36,8 +36,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .errors import SekdError
-from .fsio import atomic_output, remove_folder, write_atomic
+from ..errors import SekdError
+from .atomic import atomic_output, remove_folder, write_atomic
 
 logger = logging.getLogger("sekd")
 

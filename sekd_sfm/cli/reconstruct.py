@@ -8,21 +8,11 @@ import click
 
 from sekd_sfm.confs import output_names
 from sekd_sfm.errors import SekdError
-from sekd_sfm.sfm.database import (
-    CAMERA_MODES,
-    PRINCIPAL_POINT_MIN_IMAGES,
-    PRINCIPAL_POINT_MODES,
-)
+from sekd_sfm.sfm.database import CAMERA_MODES, PRINCIPAL_POINT_MIN_IMAGES, PRINCIPAL_POINT_MODES
 
 from .adapt import adapt_in_line, adapt_option
 from .match import match_options, pairs_config, pairs_options
-from .options import (
-    executor_options,
-    feature_options,
-    max_pixels_option,
-    runtime_options,
-    weights_option,
-)
+from .options import executor_options, feature_options, max_pixels_option, runtime_options, weights_option
 from .presets import conf_option, configs_from_context, current_conf
 
 
@@ -152,11 +142,7 @@ def reconstruct(images, output, feature, max_keypoints, threshold, nms_radius, r
       sekd reconstruct photos/ -o out/ --features hloc/feats.h5 --matches hloc/matches.h5 --pairs-file hloc/pairs.txt
     """
     from sekd_sfm.sfm.database import CameraConfig
-    from sekd_sfm.sfm.reconstruct import (
-        DEFAULT_RESIZE_MAX,
-        ReconstructConfig,
-        ReconstructionError,
-    )
+    from sekd_sfm.sfm.reconstruct import DEFAULT_RESIZE_MAX, ReconstructConfig, ReconstructionError
     from sekd_sfm.sfm.reconstruct import reconstruct as run
     from sekd_sfm.sfm.report import format_summary
 

@@ -13,18 +13,18 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .errors import SekdError
-from .fsio import atomic_output
+from ..errors import SekdError
+from ..files.atomic import atomic_output
 from .network import SEKDNet
-from .network_lite import ARCHITECTURE as LITE_ARCHITECTURE
-from .network_lite import SEKDLiteNet, build_lite
+from .lite import ARCHITECTURE as LITE_ARCHITECTURE
+from .lite import SEKDLiteNet, build_lite
 
 #: The ``architecture`` of the full network; checkpoints without an architecture entry
 #: (the authors' release, older runs of this project) are full-network checkpoints.
 FULL_ARCHITECTURE = "sekd"
 ARCHITECTURES = (FULL_ARCHITECTURE, LITE_ARCHITECTURE)
 
-MODELS_DIR = Path(__file__).parent / "models"
+MODELS_DIR = Path(__file__).parent / "checkpoints"
 #: The models carried by the package, by the name ``--model`` takes: ``own`` = trained by this
 #: project's ``sekd evolve`` (docs/model_card.md), ``authors`` = the SEKD authors' release
 #: (MIT licence in models/LICENSE-authors.txt; docs/model_card_authors.md), ``lite`` = SEKD-Lite,
@@ -109,7 +109,7 @@ def load_model(weights: str | Path | None = None, architecture: str | None = Non
     """Build the network the checkpoint records and load it strictly; returns it in eval mode on the CPU.
 
     The network is a :class:`SEKDNet` or, for checkpoints recording ``architecture: sekd-lite``,
-    a :class:`~sekd_sfm.network_lite.SEKDLiteNet` (both give the same outputs). ``architecture``:
+    a :class:`~sekd_sfm.model.lite.SEKDLiteNet` (both give the same outputs). ``architecture``:
     the one the caller requires (``"sekd"`` where training code builds the full network);
     a checkpoint of the other one is a SekdError naming both.
     """

@@ -1,4 +1,4 @@
-"""SEKD-Lite: a slim network with the same inputs and outputs as :class:`~sekd_sfm.network.SEKDNet`.
+"""SEKD-Lite: a slim network with the same inputs and outputs as :class:`~sekd_sfm.model.network.SEKDNet`.
 
 The full network spends most of its ~26 GMAC (at 480x640) in three 32-channel residual
 blocks at full resolution and three blocks each at 1/2 and 1/4 resolution. SEKD-Lite keeps
@@ -7,12 +7,12 @@ decoder, a 2-class detector at full resolution, 128-D descriptors at 1/4 resolut
 at most one block per stage, two dilated "context" blocks at 1/4 resolution (dilation 2 and
 4: a descriptor sees ~60 px around its keypoint, as the full network's does, for little time
 since that resolution has 1/16 of the pixels) and a 1x1 descriptor head. The default (SEKD-Lite
-version 3, ``sekd_sfm/models/sekd_lite.pth``) has no residual block at full resolution and
+version 3, ``sekd_sfm/model/checkpoints/sekd_lite.pth``) has no residual block at full resolution and
 8/24/48 channels: 1.39 GMAC, 63,618 parameters; versions 1 and 2 were 16/32/64 channels with
 a full-resolution block (3.3 GMAC, 114,274 parameters), about half as fast on CPUs without
 native bf16. It is trained by distillation from the full model (``sekd distill``,
 docs/model_card_lite.md). Module names follow SEKDNet's (``deconv0``/``deconv1`` etc.), so
-the inference fast path (:func:`~sekd_sfm.network.use_fast_deconv`) applies unchanged.
+the inference fast path (:func:`~sekd_sfm.model.network.use_fast_deconv`) applies unchanged.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from .network import DESCRIPTOR_DIM, ResBlock, SEKDForward, _stage, _upsample
 
 #: The name recorded in a checkpoint's ``'sekd_sfm': {'architecture': ...}`` entry.
 ARCHITECTURE = "sekd-lite"
-#: Default constructor settings (also what ``sekd_sfm/models/sekd_lite.pth`` was trained with).
+#: Default constructor settings (also what ``sekd_sfm/model/checkpoints/sekd_lite.pth`` was trained with).
 DEFAULT_CONFIG = {"channels": [8, 24, 48], "blocks": [0, 1, 1], "context_dilations": [2, 4], "stem_kernel": 3}
 #: The grouped decoder convolutions use 8 groups, as in SEKDNet: channel counts must divide by 8.
 _GROUPS = 8

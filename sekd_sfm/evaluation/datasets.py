@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SekdError
-from ..images import IMAGE_EXTENSIONS
+from ..files.images import IMAGE_EXTENSIONS
 
 
 @dataclass
@@ -72,7 +72,7 @@ class PoseScene:
 
 
 def _strecha_scene(folder: Path) -> PoseScene:
-    from .strecha import read_cameras
+    from ..bench.strecha import read_cameras
 
     cameras = {name: (c.K, *c.cam_from_world) for name, c in read_cameras(folder / "gt_dense_cameras").items()}
     images = folder / "images" if (folder / "images").is_dir() else folder

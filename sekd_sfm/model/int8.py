@@ -5,7 +5,7 @@ with a dynamic height and width, quantized by NNCF's post-training quantization 
 shared COCO photos, and saved as an OpenVINO IR in a user cache folder keyed by the weights'
 SHA-256, the calibration settings and the library versions, so it is computed once per
 weights and rebuilt when they change. Non-maximum suppression and descriptor sampling stay in
-torch (``sekd_sfm.inference``), as for fp32 and bf16.
+torch (``sekd_sfm.model.inference``), as for fp32 and bf16.
 
 Needs the optional extra: ``pip install "sekd-sfm[int8]"``.
 """
@@ -23,8 +23,8 @@ import cv2
 import numpy as np
 import torch
 
-from .errors import SekdError
-from .failures import first_line
+from ..errors import SekdError
+from ..failures import first_line
 from .network import STRIDE, SEKDNet
 
 INSTALL_HINT = 'pip install "sekd-sfm[int8]"'
@@ -115,8 +115,8 @@ def cache_dir(net: SEKDNet, calibration: CalibrationConfig) -> Path:
 
 def calibration_images(calibration: CalibrationConfig) -> list[np.ndarray]:
     """``1 x 1 x H x W`` float32 inputs in [0, 1] from the shared COCO photos; SekdError if absent."""
-    from .images import list_images, read_image
-    from .runtime import shared_dir
+    from ..files.images import list_images, read_image
+    from ..runtime import shared_dir
 
     folder = shared_dir() / "data" / "train" / "coco"
     keys = list_images(folder)[: calibration.count] if folder.is_dir() else []
@@ -192,7 +192,7 @@ class Int8SEKD:
     dtype = torch.float32
 
     def __init__(self, net: SEKDNet, device: str = "auto", num_threads: int | None = None):
-        from .runtime import resolve_device
+        from ..runtime import resolve_device
 
         if device == "cuda" or (device == "auto" and resolve_device("auto").type == "cuda"):
             raise SekdError("--precision int8 runs on the CPU only; use --device cpu (or --precision fp32 on the GPU)")
