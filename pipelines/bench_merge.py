@@ -4,7 +4,7 @@ Takes the images of a real feature file (e.g. 640 px SEKD, 2,000 keypoints: ~1 M
 image), repeats them under new keys up to N images, writes them as Ray workers do (tasks of
 --task images, 4 by default: part chunks for ``copy``, shard files and their descriptions
 for ``virtual``; one process here, spread over the workers in a run), then times the
-driver's merge into ``features.h5`` (``featurefile.merge_parts``: copy + fsync + rename, as
+driver's merge into ``features.h5`` (``partstore.merge_parts``: copy + fsync + rename, as
 at the end of a run; for ``virtual`` the workers' descriptions saved as a manifest first,
 as the driver does) and checks that the files read the same arrays. ``virtual`` copies the groups each shard holds ready-made
 (``shards.LINKS``); ``virtual-described`` is the same merge from shards without them, so each
@@ -28,6 +28,8 @@ import h5py
 import numpy as np
 
 from sekd_sfm.files import features as ff
+
+from sekd_sfm.files import partstore
 from sekd_sfm.files import shards
 
 
@@ -49,7 +51,7 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=None)
     parser.add_argument("--keep-cache", action="store_true")
     parser.add_argument("--task", type=int, default=4,
-                        help="images per Ray task, i.e. per shard (cluster.task_size: 4 up to 32 workers, 64 at 512)")
+                        help="images per Ray task, i.e. per shard (execution.task_size: 4 up to 32 workers, 64 at 512)")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_merge"))
     shutil.rmtree(work, ignore_errors=True)
@@ -66,13 +68,13 @@ def main() -> None:
     for mode in ("copy", "virtual", "virtual-described"):
         out = work / mode / "features.h5"
         out.parent.mkdir()
-        ff.create_empty(out, attrs)
+        partstore.create_empty(out, attrs)
         described = {}
         t0 = time.perf_counter()
         for start in range(0, len(items), args.task):
             task = items[start:start + args.task]
             if mode == "copy":
-                parts = ff.PartStore(out, max_items=args.task + 1, max_seconds=1e9, writer="bench")
+                parts = partstore.PartStore(out, max_items=args.task + 1, max_seconds=1e9, writer="bench")
                 for key, arrays in task:
                     parts.save(key, arrays)
                 parts.flush()
@@ -87,7 +89,7 @@ def main() -> None:
         t2 = time.perf_counter()
         if described:  # the driver's side: the workers' descriptions saved, then the merge
             shards.write_manifest(out, described)
-        merged = ff.merge_parts(out, ff.PartStore(out))
+        merged = partstore.merge_parts(out, partstore.PartStore(out))
         t3 = time.perf_counter()
         assert merged == len(items), (mode, merged)
         rates[mode] = len(items) / (t3 - t2)

@@ -105,17 +105,19 @@ EOF
 # driver's costs are: (1) the final merge into the HDF5 file, copy against virtual, measured
 # on local1.h5's arrays repeated to 2,000 images (pipelines/bench_merge.py; the workers'
 # writing time is given too: it is spread over the workers), and (2) absorbing key rows from
-# the actor pool (identity workers returning key rows, no model, through cluster._stream: the
+# the actor pool (identity workers returning key rows, no model, through ray_pool._stream: the
 # whole driver side of a run with free workers; CPU of the driver process per row, Ray's
 # threads included).
 python "$(dirname "$0")/bench_merge.py" "$OUT/local1.h5" --images 2000 --work "$OUT/merge" | tee -a "$REPORT"
-# ... and in tasks of 64 images, the task size of a 512-worker cluster (cluster.task_size)
+# ... and in tasks of 64 images, the task size of a 512-worker cluster (execution.task_size)
 python "$(dirname "$0")/bench_merge.py" "$OUT/local1.h5" --images 2048 --task 64 --work "$OUT/merge" | tee -a "$REPORT"
 
 RAY_BACKEND_LOG_LEVEL=fatal ip netns exec "$NS" python - "127.0.0.1:$PORT" <<'EOF' | tee -a "$REPORT"
 import logging, pickle, sys, time
 import ray
-from sekd_sfm.execution.raycluster import RayOptions, _rows, _stream
+from sekd_sfm.execution import RayOptions
+from sekd_sfm.execution.ray_pool import _columns, _stream, _workers
+from sekd_sfm.execution.ray_run import _rows
 ray.init(address=sys.argv[1], log_to_driver=False, logging_level=logging.WARNING)
 class Echo:  # a worker that answers at once with the rows a real worker sends: keys, no errors, its chunk name
     def __call__(self, batch):
@@ -125,8 +127,10 @@ n = 4000
 for per_task in (4, 32):  # the driver's cost is per task, so bigger tasks divide it
     items = [{"key": f"folder/image_{i:06d}.jpg"} for i in range(n)]
     first = None; count = 0; size = 0; chunks = set()
-    with _stream(ray, items, Echo, (), per_task, RayOptions(images_per_task=per_task)) as results:
-        for batch in results:  # as sekd_sfm.execution.raycluster._drain reads them
+    options = RayOptions(images_per_task=per_task)
+    tasks = [_columns(items[i:i + per_task]) for i in range(0, n, per_task)]
+    with _stream(ray, tasks, Echo, (), min(_workers(ray, options), len(tasks)), options) as results:
+        for batch in results:  # as sekd_sfm.execution.ray_run._drain reads them
             if first is None:
                 first, cpu0, skip = time.perf_counter(), time.process_time(), len(batch["key"])
             size += len(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))

@@ -21,8 +21,8 @@ from typing import Any
 
 from .errors import SekdError
 from .features import FeatureConfig
-from .model.inference import SEKDConfig
 from .match import DEFAULT_RATIO, MatchConfig
+from .model.inference import SEKDConfig
 
 
 @dataclass(frozen=True)

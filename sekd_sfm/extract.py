@@ -5,18 +5,19 @@ import logging
 import sys
 import time
 from collections import deque
+from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from .execution import raycluster as cluster
-from .files import shards
-from .files import features as ff
-from .errors import Interrupted, SekdError
+from .errors import SekdError
+from .execution import RayOptions, Result, Stage, check_executor, open_executor
 from .features import FeatureConfig, build_extractor
+from .files import features as ff
+from .files import locking, partstore, shards
 from .files.images import DEFAULT_MAX_PIXELS, ImageReadError, list_images, load_scaled, to_original_pixels
 from .model.inference import FastSEKD
 from .runtime import package_versions, set_num_threads, untune_allocator
@@ -92,6 +93,59 @@ def _prefetched(pool: ThreadPoolExecutor, paths: list[Path], resize_max: int | N
     yield from queue
 
 
+class ExtractWorker:
+    """Extraction's worker (``execution.Stage``): builds the extractor once per process, then extracts batches of
+    image keys (paths below ``image_dir``), decoding ahead on a background thread (OpenCV releases the GIL).
+
+    ``described``: the driver's ``describe_config``; a worker that would compute other features
+    (another model or package version on a Ray node) refuses to start. ``extractor``: one the
+    caller built already (the driver's own; then nothing is built or checked).
+    """
+
+    def __init__(self, image_dir: str, config: FeatureConfig, described: dict | None = None, extractor=None):
+        self.image_dir, self.config = Path(image_dir), config
+        if extractor is None:
+            extractor = self._build(config, described)
+        self.extractor = extractor
+        self.color = getattr(extractor, "color", False)
+        self.pool = ThreadPoolExecutor(max_workers=1)
+
+    @staticmethod
+    def _build(config: FeatureConfig, described: dict | None):
+        try:
+            extractor, info = build_extractor(config)
+        except (SekdError, OSError) as exc:
+            raise SekdError(f"cannot build the extractor: {exc}") from exc
+        mine = describe_config(config, extractor, info)
+        if described is not None and mine != described:
+            raise SekdError(f"would compute other features ({ff.json_attr(mine)}) than the driver "
+                            f"({ff.json_attr(described)}); install the same sekd-sfm and weights on every node")
+        return extractor
+
+    def __call__(self, keys: list[str]) -> Iterator[Result]:
+        paths = [self.image_dir / key for key in keys]
+        for key, (_, future) in zip(keys, _prefetched(self.pool, paths, self.config.resize_max, self.color,
+                                                       self.config.max_pixels)):
+            try:
+                yield key, _features_of(self.extractor, future.result()), ""
+            except ImageReadError as exc:
+                yield key, None, str(exc)
+
+
+def worker_config(config: FeatureConfig, extractor) -> FeatureConfig:
+    """The configuration other processes build: ``auto`` precision and a relative weights path resolved here."""
+    weights = str(Path(config.weights).resolve()) if config.weights else None
+    if config.feature == "sekd":
+        return replace(config, weights=weights, sekd=replace(config.sekd, precision=extractor.model.precision))
+    return replace(config, weights=weights)
+
+
+def _on_cpu(extractor) -> bool:
+    """Whether ``extractor`` runs on the CPU (the driver's helper must compute exactly what CPU workers do)."""
+    device = getattr(getattr(extractor, "model", None), "device", None) or getattr(extractor, "device", "cpu")
+    return str(device) == "cpu"
+
+
 def extract_features(
     image_dir: str | Path,
     output: str | Path,
@@ -103,7 +157,7 @@ def extract_features(
     progress: bool = True,
     checkpoint_seconds: float = 10.0,
     executor: str = "local",
-    ray_options: cluster.RayOptions | None = None,
+    ray_options: RayOptions | None = None,
 ) -> Path:
     """Extract features of every image below ``image_dir`` into the HDF5 file ``output``.
 
@@ -114,12 +168,12 @@ def extract_features(
     Finished images are saved to ``<output>.parts/`` at least every ``checkpoint_seconds``
     (what a kill loses at most) and written into ``output`` once, at the end (see
     ``featurefile``). Holds ``output``'s lock: a second run on the same file is refused.
-    ``executor="ray"`` extracts on a Ray cluster (``cluster``), same file.
+    ``executor="ray"`` extracts on a Ray cluster (``execution``), same file.
     """
     config = config or FeatureConfig()
     image_dir, output = Path(image_dir), Path(output)
-    cluster.check_executor(executor, ray_options)
-    with ff.writer_lock(output, "features file"):
+    check_executor(executor, ray_options)
+    with locking.writer_lock(output, "features file"):
         try:
             return _extract(image_dir, output, config, overwrite, strict, num_threads, progress, checkpoint_seconds,
                             executor, ray_options)
@@ -129,62 +183,38 @@ def extract_features(
 
 def _extract(image_dir: Path, output: Path, config: FeatureConfig, overwrite: bool, strict: bool,
              num_threads: int | None, progress: bool, checkpoint_seconds: float, executor: str = "local",
-             ray_options: cluster.RayOptions | None = None) -> Path:
+             ray_options: RayOptions | None = None) -> Path:
     keys = list_images(image_dir)
     set_num_threads(num_threads)
     extractor, model_info = build_extractor(config)
     described = describe_config(config, extractor, model_info)
     attrs = _file_attrs(config, described, extractor, model_info)
-    parts = ff.PartStore(output, max_items=64, max_seconds=checkpoint_seconds)
-    ff.prepare_output(output, attrs, parts, overwrite, compare=("config",))
+    parts = partstore.PartStore(output, max_items=64, max_seconds=checkpoint_seconds)
+    partstore.prepare_output(output, attrs, parts, overwrite, compare=("config",))
     done = set(ff.list_keys(output)) | parts.keys() | shards.all_keys(output)
     todo = [k for k in keys if k not in done]
     logger.info("%s: %d images, %d already done, %d to extract", image_dir, len(keys), len(keys) - len(todo), len(todo))
-    merge = None
-    try:
-        if executor == "local":
-            failed = _run(extractor, image_dir, todo, config, parts, output, strict, progress)
-        else:
-            with cluster.session(executor if todo else "local", ray_options):  # no connection for nothing to do
-                if todo and cluster.driver_merges_while_running(ray_options):
-                    merge = ff.Merge(output, parts)  # fed with the workers' chunks as they arrive
-                    logger.info("Ray: the driver copies the workers' results into the output as they arrive")
-                failed = cluster.extract_on_ray(image_dir, todo, config, described, extractor, parts, output,
-                                                strict=strict, progress=progress, options=ray_options, merge=merge)
-        parts.flush()  # on disk before the merge: a merge that fails or is killed loses nothing
-        ff.finish_run(output, parts, {"failed_images": ff.json_attr(failed)}, what="images", merge=merge)
-    finally:
-        if merge is not None:
-            merge.discard()  # after a failure: the file as it was, the chunks for the next run
+    stage = Stage(
+        name=f"extract {config.feature}", worker=ExtractWorker,
+        args=(str(image_dir.resolve()), worker_config(config, extractor), described),
+        batches=[[key] for key in todo], output=output, write_group=ff.write_image_group,
+        unit="img", items="images", verb="extracted", joinable=True, per_task=4, shardable=True,
+        built=ExtractWorker(str(image_dir), config, extractor=extractor), driver_may_help=_on_cpu(extractor))
+    failed: list[str] = []
+
+    def on_error(key: str, error: str) -> None:
+        if strict:
+            raise SekdError(f"{error} (--strict)")
+        failed.append(key)
+        tqdm.write(f"warning: {error}; skipped", file=sys.stderr)
+
+    def failed_images() -> dict:
+        order = {key: i for i, key in enumerate(todo)}  # a local run's order, whatever order Ray's tasks finished in
+        return {"failed_images": ff.json_attr(sorted(failed, key=order.__getitem__))}
+
+    with open_executor(executor, ray_options) as runner:
+        runner.run(stage, parts, on_error, progress=progress, attrs=failed_images)
     # Parts of a killed run are merged too, so count the file, not this run's images.
     total = len(ff.list_keys(output))
     logger.info("%s: %d images written this run, %d failed, %d in the file", output, total - len(done), len(failed), total)
     return output
-
-
-def _run(extractor, image_dir, todo, config, parts, output, strict, progress) -> list[str]:
-    failed: list[str] = []
-    bar = tqdm(total=len(todo), unit="img", desc=f"extract {config.feature}", disable=not progress, dynamic_ncols=True)
-    try:
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            for path, future in _prefetched(pool, [image_dir / k for k in todo], config.resize_max,
-                                           getattr(extractor, "color", False), config.max_pixels):
-                key = path.relative_to(image_dir).as_posix()
-                try:
-                    parts.save(key, _features_of(extractor, future.result()))
-                except ImageReadError as exc:
-                    if strict:
-                        raise SekdError(f"{exc} (--strict)") from exc
-                    failed.append(key)
-                    tqdm.write(f"warning: {exc}; skipped", file=sys.stderr)
-                bar.update(1)
-    except KeyboardInterrupt:
-        bar.close()
-        saved = ff.finish_run(output, parts, what="images")
-        raise Interrupted(f"interrupted: {saved} more images saved in {output}; run the same command again to resume") from None
-    except BaseException:
-        ff.keep_parts(parts)  # finished images stay for the next run
-        raise
-    finally:
-        bar.close()
-    return failed

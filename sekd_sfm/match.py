@@ -25,12 +25,12 @@ from pathlib import Path
 import h5py
 import numpy as np
 import torch
-from tqdm import tqdm
 
-from .execution import raycluster as cluster
+from .errors import SekdError
+from .execution import RayOptions, Result, Stage, check_executor, open_executor
 from .files import features as ff
+from .files import locking, partstore
 from .files import matches as mf
-from .errors import Interrupted, SekdError
 from .pairs import Pair, read_pairs
 from .runtime import package_versions, resolve_device, set_num_threads
 
@@ -352,7 +352,7 @@ def match_features(
     progress: bool = True,
     checkpoint_seconds: float = 10.0,
     executor: str = "local",
-    ray_options: cluster.RayOptions | None = None,
+    ray_options: RayOptions | None = None,
 ) -> Path:
     """Match the image pairs listed in the file ``pairs`` using the features in ``features``; write ``output``.
 
@@ -366,15 +366,15 @@ def match_features(
     """
     config = config or MatchConfig()
     features, pairs_path, output = Path(features), Path(pairs), Path(output)
-    cluster.check_executor(executor, ray_options)  # ``executor="ray"``: match on a Ray cluster (``cluster``), same file
-    with ff.writer_lock(output, "matches file"):
+    check_executor(executor, ray_options)  # ``executor="ray"``: match on a Ray cluster (``execution``), same file
+    with locking.writer_lock(output, "matches file"):
         return _match(features, pairs_path, output, config, overwrite, num_threads, progress, checkpoint_seconds,
                       executor, ray_options)
 
 
 def _match(features: Path, pairs_path: Path, output: Path, config: MatchConfig, overwrite: bool,
            num_threads: int | None, progress: bool, checkpoint_seconds: float, executor: str = "local",
-           ray_options: cluster.RayOptions | None = None) -> Path:
+           ray_options: RayOptions | None = None) -> Path:
     fattrs, sizes = check_feature_file(features)
     pair_list = read_pairs(pairs_path)
     check_pairs(pair_list, sizes, features, pairs_path)
@@ -384,56 +384,58 @@ def _match(features: Path, pairs_path: Path, output: Path, config: MatchConfig, 
     attrs = _file_attrs(features, fattrs, described)
     if not overwrite:
         _check_same_features(output, attrs, features)
-    parts = ff.PartStore(output, max_items=PART_PAIRS, max_seconds=checkpoint_seconds)
-    ff.prepare_output(output, attrs, parts, overwrite, ("features_config", "config"), "feature or match configuration")
+    parts = partstore.PartStore(output, max_items=PART_PAIRS, max_seconds=checkpoint_seconds)
+    partstore.prepare_output(output, attrs, parts, overwrite, ("features_config", "config"), "feature or match configuration")
     done = mf.stored_pairs(output, pair_list) | {frozenset(pair) for pair in _part_pairs(parts)}
     todo = [p for p in pair_list if frozenset(p) not in done]
     logger.info("%s: %d pairs, %d already matched, %d to match (%s)", output, len(pair_list),
                 len(pair_list) - len(todo), len(todo), described)
     set_num_threads(num_threads)
-    if executor == "local":
-        _run(features, todo, sizes, binary, described, config, parts, output, progress)
-    else:
-        cluster.match_on_ray(features, todo, sizes, binary, described, config, parts, output, progress=progress,
-                             options=ray_options)
-    parts.flush()  # on disk before the merge: a merge that fails or is killed loses nothing
+    stage = Stage(name="match", worker=MatchWorker, args=(str(features.resolve()), binary, described, config),
+                  batches=[[mf.pair_key(a, b) for a, b in group] for group in batches(todo, sizes, config.max_elements)],
+                  output=output, write_group=mf.write_pair_group, unit="pair", items="pairs")
+
+    def on_error(key: str, error: str) -> None:  # a pair fails only with its whole run (its worker raises)
+        raise SekdError(error)
+
     # Nothing new: the file stays untouched (a rewrite would change its time for nothing).
-    ff.finish_run(output, parts, {"modified": time.strftime("%Y-%m-%dT%H:%M:%S%z")} if todo else None,
-                  mf.write_pair_group, "pairs")
+    with open_executor(executor, ray_options) as runner:
+        runner.run(stage, parts, on_error, progress=progress,
+                   attrs=lambda: {"modified": time.strftime("%Y-%m-%dT%H:%M:%S%z")} if todo else None)
     return output
 
 
-def _part_pairs(parts: ff.PartStore) -> list[tuple[str, str]]:
+def _part_pairs(parts: partstore.PartStore) -> list[tuple[str, str]]:
     return [tuple(json.loads(key)) for key in sorted(parts.keys())]
 
 
-def _run(features, todo, sizes, binary, described, config, parts, output, progress) -> None:
-    device = resolve_device(config.device)
-    bar = tqdm(total=len(todo), unit="pair", desc="match", disable=not progress, dynamic_ncols=True)
-    try:
-        with h5py.File(features, "r") as f:
-            cache = DescriptorCache(f, binary, described.get("rootsift", False), device)
-            for batch in batches(todo, sizes, config.max_elements):
-                _match_and_save(batch, cache, binary, described, config, parts)
-                bar.update(len(batch))
-    except KeyboardInterrupt:
-        bar.close()
-        saved = ff.finish_run(output, parts, write_group=mf.write_pair_group, what="pairs")
-        raise Interrupted(f"interrupted: {saved} more pairs saved in {output}; run the same command again to resume") from None
-    except BaseException:
-        ff.keep_parts(parts)  # finished pairs stay for the next run
-        raise
-    finally:
-        bar.close()
+class MatchWorker:
+    """Matching's worker (``execution.Stage``): opens the feature file once per process (at its first batch), keeps
+    the prepared descriptors of recent images (``DescriptorCache``), and matches one batch of pairs per call:
+    the pairs padded into one distance matrix, so local and Ray runs compute the same numbers.
+    """
 
+    def __init__(self, features: str, binary: bool, described: dict, config: MatchConfig):
+        self.features, self.binary, self.described, self.config = features, binary, described, config
+        self.cache: DescriptorCache | None = None
 
-def _match_and_save(batch, cache, binary, described, config, parts) -> None:
-    a0, n0 = stack_rows([cache[a][0] for a, _ in batch])
-    a1t, _ = stack_cols([cache[b][1] for _, b in batch])
-    matches, scores = match_batch(a0, a1t, n0, binary, described["mode"], described["ratio"], config.max_elements,
-                                  cache.workspace(config.max_elements))
-    matches, scores = matches.cpu().numpy(), scores.cpu().numpy()
-    for i, (a, b) in enumerate(batch):
-        n = int(n0[i])
-        parts.save(mf.pair_key(a, b), {"matches0": matches[i, :n].astype(np.int32),
-                                       "matching_scores0": scores[i, :n].astype(np.float32)})
+    def _open(self) -> DescriptorCache:
+        try:
+            f = h5py.File(self.features, "r")
+        except OSError as exc:  # e.g. a Ray node that does not see the file: nothing can be matched there
+            raise SekdError(f"{self.features}: cannot read the feature file ({exc}); every node must see it at the "
+                            "same path (shared storage)") from exc
+        return DescriptorCache(f, self.binary, self.described.get("rootsift", False), resolve_device(self.config.device))
+
+    def __call__(self, keys: list[str]) -> list[Result]:
+        if self.cache is None:
+            self.cache = self._open()
+        batch = [tuple(json.loads(key)) for key in keys]
+        a0, n0 = stack_rows([self.cache[a][0] for a, _ in batch])
+        a1t, _ = stack_cols([self.cache[b][1] for _, b in batch])
+        matches, scores = match_batch(a0, a1t, n0, self.binary, self.described["mode"], self.described["ratio"],
+                                      self.config.max_elements, self.cache.workspace(self.config.max_elements))
+        matches, scores = matches.cpu().numpy(), scores.cpu().numpy()
+        return [(key, {"matches0": matches[i, :int(n0[i])].astype(np.int32),
+                       "matching_scores0": scores[i, :int(n0[i])].astype(np.float32)}, "")
+                for i, key in enumerate(keys)]

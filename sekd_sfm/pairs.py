@@ -25,8 +25,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .files import features as ff
 from .errors import SekdError
+from .files import features as ff
 from .files.atomic import write_atomic
 from .retrieval import RetrievalConfig, compute_global_descriptors, nearest_neighbors
 

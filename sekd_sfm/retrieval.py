@@ -40,8 +40,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .files import features as ff
 from .errors import SekdError
+from .files import features as ff
 from .files.atomic import atomic_output
 from .files.locking import exclusive_lock
 

@@ -14,9 +14,9 @@ import cv2
 import h5py
 import numpy as np
 
+from .errors import SekdError
 from .files import features as ff
 from .files import matches as mf
-from .errors import SekdError
 from .files.images import ImageReadError, read_image
 
 logger = logging.getLogger("sekd")

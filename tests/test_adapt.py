@@ -11,11 +11,11 @@ import h5py
 import pytest
 import torch
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 from test_train_run import write_small_coco
 
-from sekd_sfm.train.adapt import AdaptConfig, adapt_tasks, run_folder, train_config
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.model.weights import EMBEDDED_MODELS, file_sha256, load_model
+from sekd_sfm.train.adapt import AdaptConfig, adapt_tasks, run_folder, train_config
 
 TINY = ["--schedule", "tiny", "--from", "own", "--no-progress", "--num-threads", "1"]
 

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from conftest import GRAFFITI, SEKD_WEIGHTS
-from sekd_sfm.cli.main import sekd
 
-from sekd_sfm.evaluation import metrics
-from sekd_sfm.evaluation.datasets import find_sequences
 from sekd_sfm.bench.homography import HomographyConfig, evaluate_pair, run_homography_benchmark, summarise
 from sekd_sfm.bench.methods import Method, parse_method
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
+from sekd_sfm.evaluation import metrics
+from sekd_sfm.evaluation.datasets import find_sequences
 
 
 def test_identity_homography_has_zero_corner_error():
@@ -122,9 +122,8 @@ def test_parse_method():
 
 
 def test_a_bare_sekd_method_takes_the_model_of_model_or_weights():
-    from sekd_sfm.cli.bench import method_specs
-
     from sekd_sfm.bench.methods import with_weights
+    from sekd_sfm.cli.bench import method_specs
 
     assert with_weights(("sift", "sekd", "mine=sekd", "sekd:own", "sekd:/w/x.pth"), "/m/sekd_lite.pth") == [
         "sift", "sekd:/m/sekd_lite.pth", "mine=sekd:/m/sekd_lite.pth", "sekd:own", "sekd:/w/x.pth"]

@@ -4,9 +4,9 @@ import json
 import matplotlib.image
 import pytest
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.bench.report import PALETTE, line_style, merge_results, regenerate_plots
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 
 

@@ -4,10 +4,10 @@ import json
 import numpy as np
 import pytest
 
-from sekd_sfm.evaluation.datasets import read_pose_scene
 from sekd_sfm.bench.methods import parse_method
 from sekd_sfm.bench.pose import PoseConfig, estimate_relative_pose, pose_errors, run_pose_benchmark
 from sekd_sfm.errors import SekdError
+from sekd_sfm.evaluation.datasets import read_pose_scene
 
 
 def rotation_y(deg):

@@ -9,7 +9,6 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.bench.scale.measure import run_measured
 from sekd_sfm.bench.scale.run import growth_exponent, pair_errors, pairs_recall
@@ -37,8 +36,9 @@ from sekd_sfm.bench.scale.scene import (
     texture_cells,
     textured_fraction,
 )
-from sekd_sfm.bench.strecha import read_cameras
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
+from sekd_sfm.evaluation.strecha import read_cameras
 
 # A camera at the origin looking down +z: x ~ K X, f = 100 px, 160 x 120 px, principal point at the centre.
 K = np.array([[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]])

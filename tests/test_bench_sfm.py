@@ -2,8 +2,8 @@
 import json
 
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.evaluation.metrics import mean_average_accuracy
 
 

@@ -2,9 +2,9 @@
 import json
 
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
 from sekd_sfm.bench.summary import summary_markdown, summary_rows, write_summary
+from sekd_sfm.cli.main import sekd
 
 HOMOGRAPHY = {"methods": {
     "sift": {"summary": {"avg_ha_all": 0.784, "avg_ha_i": 0.98, "avg_ha_v": 0.6533, "mma": [0.1, 0.4, 0.5929]}},

@@ -5,11 +5,11 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+
 from sekd_sfm.cli import extract as extract_cli
 from sekd_sfm.cli import match as match_cli
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.cli.reconstruct import reconstruct
-
 from sekd_sfm.confs import CONFS, DEFAULT_CONF, build_configs, describe_confs, get_conf, output_names
 from sekd_sfm.errors import SekdError
 

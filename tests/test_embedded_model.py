@@ -6,11 +6,11 @@ import h5py
 import pytest
 from click.testing import CliRunner
 from conftest import GRAFFITI, ROOT
-from sekd_sfm.cli.main import sekd
 
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.train import ship
 from sekd_sfm.model.weights import DEFAULT_MODEL, EMBEDDED_MODEL, EMBEDDED_MODELS, file_sha256, load_model
+from sekd_sfm.train import ship
 
 OWN = EMBEDDED_MODELS["own"]
 AUTHORS = EMBEDDED_MODELS["authors"]

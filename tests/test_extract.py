@@ -13,12 +13,13 @@ import pytest
 import torch
 from click.testing import CliRunner
 from conftest import SEKD_WEIGHTS
-from sekd_sfm.cli.main import sekd
 
-from sekd_sfm.files import features as ff
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.extract import extract_features
 from sekd_sfm.features import FeatureConfig
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import partstore
 from sekd_sfm.model.inference import SEKDConfig
 
 
@@ -95,12 +96,12 @@ def test_resize_max_maps_keypoints_back(tmp_path, shared):
 def test_resume_after_crash_before_merge(images, tmp_path, monkeypatch, shared):
     """A run killed after saving parts but before merging: the file opens, the next run completes it."""
     out = tmp_path / "f.h5"
-    real_merge = ff.merge_parts
-    monkeypatch.setattr(ff, "merge_parts", lambda *a, **k: (_ for _ in ()).throw(SystemExit("killed")))
+    real_merge = partstore.merge_parts
+    monkeypatch.setattr(partstore, "merge_parts", lambda *a, **k: (_ for _ in ()).throw(SystemExit("killed")))
     with pytest.raises(SystemExit):
         extract_features(images, out, sekd_config(), progress=False)
     assert ff.list_keys(out) == []  # opens, holds nothing yet
-    monkeypatch.setattr(ff, "merge_parts", real_merge)
+    monkeypatch.setattr(partstore, "merge_parts", real_merge)
     calls = []
     import sekd_sfm.extract as ex
     real_features_of = ex._features_of
@@ -126,7 +127,7 @@ def test_kill_9_at_any_moment_leaves_a_readable_file(tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     first = ff.list_keys(out)  # opens after the kill
-    saved = ff.PartStore(out).keys()
+    saved = partstore.PartStore(out).keys()
     calls = []
     import sekd_sfm.extract as ex
     real = ex._features_of
@@ -275,6 +276,7 @@ def test_summary_line_counts_images_merged_at_checkpoints(tmp_path, caplog):
 
 def test_cli_keypoints_are_sub_pixel_by_default_and_integer_with_no_subpixel(images, tmp_path, shared):
     from click.testing import CliRunner
+
     from sekd_sfm.cli.main import sekd
 
     runs = {}

@@ -11,14 +11,15 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 from test_extract import write_images
 
-from sekd_sfm.files import features as ff
-from sekd_sfm.files import matches as mf
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.extract import extract_features
 from sekd_sfm.features import FeatureConfig
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import matches as mf
+from sekd_sfm.files import partstore
 from sekd_sfm.match import MatchConfig, match_features
 from sekd_sfm.pairs import write_pairs
 
@@ -47,11 +48,11 @@ def feature_attrs(dim: int = 16) -> dict:
 
 
 def fake_feature_file(path, count: int, n: int = 50):
-    ff.create_empty(path, feature_attrs())
-    parts = ff.PartStore(path)
+    partstore.create_empty(path, feature_attrs())
+    parts = partstore.PartStore(path)
     for i in range(count):
         parts.save(f"{i:04d}.jpg", features_of(i, n))
-    ff.merge_parts(path, parts)
+    partstore.merge_parts(path, parts)
     return path
 
 
@@ -94,7 +95,7 @@ def test_matching_writes_bytes_linear_in_pairs(tmp_path):
 
 def test_part_store_batches_items_into_chunks(tmp_path):
     out = tmp_path / "f.h5"
-    parts = ff.PartStore(out, max_items=4, max_seconds=1e9)
+    parts = partstore.PartStore(out, max_items=4, max_seconds=1e9)
     for i in range(10):
         parts.save(f"{i}.jpg", features_of(i, 3))
     assert len(parts.chunks()) == 2 and parts.keys() == {f"{i}.jpg" for i in range(10)}  # 2 left in memory
@@ -105,48 +106,48 @@ def test_part_store_batches_items_into_chunks(tmp_path):
     items = dict(parts.items())
     assert sorted(items) == sorted(f"{i}.jpg" for i in range(10))
     assert np.array_equal(items["3.jpg"]["keypoints"], features_of(99, 3)["keypoints"])
-    ff.create_empty(out, feature_attrs())
-    assert ff.merge_parts(out, parts) == 10
+    partstore.create_empty(out, feature_attrs())
+    assert partstore.merge_parts(out, parts) == 10
     assert ff.list_keys(out) == sorted(f"{i}.jpg" for i in range(10)) and not parts.root.exists()
     assert np.array_equal(ff.read_features(out, "3.jpg")["descriptors"], features_of(99, 3)["descriptors"])
 
 
 def test_part_store_empty_and_damaged_chunks(tmp_path):
     out = fake_feature_file(tmp_path / "f.h5", 2)
-    parts = ff.PartStore(out)
-    assert parts.keys() == set() and parts.chunks() == [] and ff.merge_parts(out, parts) == 0
+    parts = partstore.PartStore(out)
+    assert parts.keys() == set() and parts.chunks() == [] and partstore.merge_parts(out, parts) == 0
     parts.save("x.jpg", features_of(5))
     parts.root.joinpath("00000000000000000000-1-000001.npz").write_bytes(b"torn")  # not a zip
     parts.root.joinpath(".00000000000000000000-1-000002.npz.999999999.tmp").write_bytes(b"half")  # dead writer
     assert parts.keys() == {"x.jpg"}
     assert [p.name for p in parts.root.iterdir()] == [parts.chunks()[0].name]
-    assert ff.merge_parts(out, parts) == 1 and ff.list_keys(out) == ["0000.jpg", "0001.jpg", "x.jpg"]
+    assert partstore.merge_parts(out, parts) == 1 and ff.list_keys(out) == ["0000.jpg", "0001.jpg", "x.jpg"]
 
 
 def test_merge_killed_after_its_rename_is_not_merged_twice(tmp_path):
     """The MERGING marker + merge_id attribute tell a landed merge from one that did not land."""
     out = fake_feature_file(tmp_path / "f.h5", 2)
-    parts = ff.PartStore(out)
+    parts = partstore.PartStore(out)
     parts.save("x.jpg", features_of(5))
-    real_drop = ff.PartStore.drop
-    ff.PartStore.drop = lambda self, chunks: None  # killed right after the rename
+    real_drop = partstore.PartStore.drop
+    partstore.PartStore.drop = lambda self, chunks: None  # killed right after the rename
     try:
-        ff.merge_parts(out, parts)
+        partstore.merge_parts(out, parts)
     finally:
-        ff.PartStore.drop = real_drop
-    assert parts.keys() == {"x.jpg"} and (parts.root / ff.MERGING).exists()
+        partstore.PartStore.drop = real_drop
+    assert parts.keys() == {"x.jpg"} and (parts.root / partstore.MERGING).exists()
     size = os.path.getsize(out)
     parts.save("y.jpg", features_of(6))  # saved after that merge: must survive its recovery
-    ff.prepare_output(out, feature_attrs(), ff.PartStore(out), False, ("config",))
-    assert ff.PartStore(out).keys() == {"y.jpg"} and not (parts.root / ff.MERGING).exists()
+    partstore.prepare_output(out, feature_attrs(), partstore.PartStore(out), False, ("config",))
+    assert partstore.PartStore(out).keys() == {"y.jpg"} and not (parts.root / partstore.MERGING).exists()
     assert os.path.getsize(out) == size and len(ff.list_keys(out)) == 3
-    ff.merge_parts(out, parts)
+    partstore.merge_parts(out, parts)
     assert not parts.root.exists() and len(ff.list_keys(out)) == 4
     # A marker whose merge did not land (killed before the rename) is dropped, the parts kept.
     parts.save("z.jpg", features_of(7))
-    (parts.root / ff.MERGING).write_text(json.dumps({"merge_id": "0123", "chunks": [parts.chunks()[0].name]}))
-    ff.prepare_output(out, feature_attrs(), ff.PartStore(out), False, ("config",))
-    assert ff.PartStore(out).keys() == {"z.jpg"} and not (parts.root / ff.MERGING).exists()
+    (parts.root / partstore.MERGING).write_text(json.dumps({"merge_id": "0123", "chunks": [parts.chunks()[0].name]}))
+    partstore.prepare_output(out, feature_attrs(), partstore.PartStore(out), False, ("config",))
+    assert partstore.PartStore(out).keys() == {"z.jpg"} and not (parts.root / partstore.MERGING).exists()
 
 
 MERGE_SCRIPT = """
@@ -154,7 +155,7 @@ import sys
 from pathlib import Path
 from sekd_sfm import featurefile as ff
 out = Path(sys.argv[1])
-ff.merge_parts(out, ff.PartStore(out), {"stage": "merged"})
+partstore.merge_parts(out, partstore.PartStore(out), {"stage": "merged"})
 """
 
 
@@ -166,17 +167,17 @@ def _file_arrays(path) -> dict:
 
 
 def test_merge_fed_during_the_run_equals_one_merge_at_the_end(tmp_path):
-    """``ff.Merge``: chunks added as they come (one not visible yet), the rest at ``finish``: the file of ``merge_parts``."""
+    """``partstore.Merge``: chunks added as they come (one not visible yet), the rest at ``finish``: the file of ``merge_parts``."""
     files = {name: fake_feature_file(tmp_path / f"{name}.h5", 2) for name in ("once", "fed")}
-    stores = {name: ff.PartStore(path) for name, path in files.items()}
+    stores = {name: partstore.PartStore(path) for name, path in files.items()}
     for parts in stores.values():
         for i in range(10, 16):
             parts.save(f"{i:04d}.jpg", features_of(i))  # one chunk per image
-    assert ff.merge_parts(files["once"], stores["once"]) == 6
+    assert partstore.merge_parts(files["once"], stores["once"]) == 6
 
     parts = stores["fed"]
     chunks = parts.chunks()
-    merge = ff.Merge(files["fed"], parts)
+    merge = partstore.Merge(files["fed"], parts)
     merge.add(chunks[:2])
     merge.add([chunks[1], parts.root / "reported-but-not-visible-yet.npz"])  # again, and one not there: skipped
     with h5py.File(files["fed"], "r") as f:  # the file itself is untouched until finish
@@ -190,14 +191,14 @@ def test_merge_fed_during_the_run_equals_one_merge_at_the_end(tmp_path):
 def test_merge_discarded_leaves_the_file_and_the_chunks(tmp_path):
     out = fake_feature_file(tmp_path / "f.h5", 2)
     before = out.read_bytes()
-    parts = ff.PartStore(out)
+    parts = partstore.PartStore(out)
     for i in range(10, 13):
         parts.save(f"{i:04d}.jpg", features_of(i))
-    merge = ff.Merge(out, parts)
+    merge = partstore.Merge(out, parts)
     merge.add(parts.chunks())
     merge.discard()  # the run failed
     assert out.read_bytes() == before and len(parts.chunks()) == 3 and not list(tmp_path.glob("*.tmp"))
-    assert ff.merge_parts(out, parts) == 3  # the next run merges them
+    assert partstore.merge_parts(out, parts) == 3  # the next run merges them
     assert ff.list_keys(out) == ["0000.jpg", "0001.jpg", "0010.jpg", "0011.jpg", "0012.jpg"]
 
 
@@ -208,11 +209,11 @@ def test_kill_9_during_the_merge_of_a_large_file(tmp_path):
     expected = {f"{i:04d}.jpg": features_of(i, 200, 64) for i in range(400)}  # ~50 KB each
     base = tmp_path / "base"
     base.mkdir()
-    parts = ff.PartStore(base / "f.h5", max_items=100)
-    ff.create_empty(base / "f.h5", feature_attrs(64))
+    parts = partstore.PartStore(base / "f.h5", max_items=100)
+    partstore.create_empty(base / "f.h5", feature_attrs(64))
     for key in sorted(expected)[:200]:
         parts.save(key, expected[key])
-    ff.merge_parts(base / "f.h5", parts)  # 10 MB already in the file, 10 MB more in parts
+    partstore.merge_parts(base / "f.h5", parts)  # 10 MB already in the file, 10 MB more in parts
     for key in sorted(expected)[200:]:
         parts.save(key, expected[key])
     parts.flush()
@@ -232,8 +233,8 @@ def test_kill_9_during_the_merge_of_a_large_file(tmp_path):
             landed = f.attrs.get("stage") == "merged"
         assert keys == (sorted(expected) if landed else sorted(expected)[:200])
         outcomes.append(landed)
-        ff.prepare_output(out, feature_attrs(64), ff.PartStore(out), False, ("config",))  # the rerun
-        assert ff.merge_parts(out, ff.PartStore(out)) == (0 if landed else 200)
+        partstore.prepare_output(out, feature_attrs(64), partstore.PartStore(out), False, ("config",))  # the rerun
+        assert partstore.merge_parts(out, partstore.PartStore(out)) == (0 if landed else 200)
         assert ff.list_keys(out) == sorted(expected)
         assert sorted(p.name for p in work.iterdir()) == ["f.h5"]  # no temporaries, no parts left
         for key in ("0000.jpg", "0199.jpg", "0200.jpg", "0399.jpg"):
@@ -315,7 +316,7 @@ def test_overwrite_refuses_what_is_not_a_features_file(tmp_path, kind):
     elif kind == "colmap":
         colmap_database(target)
     elif kind == "matches":
-        ff.create_empty(target, {"format": mf.FORMAT, "feature_type": "sift"})
+        partstore.create_empty(target, {"format": mf.FORMAT, "feature_type": "sift"})
     elif kind == "other_hdf5":
         with h5py.File(target, "w") as f:
             f["x"] = 1
@@ -346,7 +347,7 @@ def test_cli_overwrite_of_a_text_file_is_one_error_line(tmp_path):
 def test_overwrite_replaces_a_features_file_and_refuses_one_for_match(tmp_path):
     images = write_images(tmp_path / "im", ["a.png", "b.png"])
     out = extract_features(images, tmp_path / "f.h5", FeatureConfig(feature="sift", max_keypoints=20), progress=False)
-    ff.PartStore(out).save("stale.png", features_of(1))  # a part of the old configuration
+    partstore.PartStore(out).save("stale.png", features_of(1))  # a part of the old configuration
     extract_features(images, out, FeatureConfig(feature="orb", max_keypoints=20), overwrite=True, progress=False)
     assert ff.list_keys(out) == ["a.png", "b.png"] and ff.read_attrs(out)["feature_type"] == "orb"
     pairs = write_pairs([("a.png", "b.png")], tmp_path / "p.txt")

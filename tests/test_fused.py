@@ -7,10 +7,10 @@ from torch import nn
 from sekd_sfm.model import fused as fused_module
 from sekd_sfm.model.fused import FusedForward, _BnRelu, fused_forward_available
 from sekd_sfm.model.inference import FastSEKD
-from sekd_sfm.model.network import SEKDNet, use_fast_deconv
 from sekd_sfm.model.lite import SEKDLiteNet
-from sekd_sfm.runtime import cpu_has_fast_bf16
+from sekd_sfm.model.network import SEKDNet, use_fast_deconv
 from sekd_sfm.model.weights import EMBEDDED_MODELS, load_model
+from sekd_sfm.runtime import cpu_has_fast_bf16
 
 pytestmark = pytest.mark.skipif(not fused_forward_available(), reason="this PyTorch has no oneDNN fused convolutions")
 
@@ -129,6 +129,7 @@ def test_every_weight_is_laid_out_channels_last_even_with_one_input_channel():
 
 def test_doctor_says_whether_the_fused_forward_is_on():
     from click.testing import CliRunner
+
     from sekd_sfm.cli.main import sekd
 
     assert "SEKD_FUSED= (on: oneDNN fused" in CliRunner().invoke(sekd, ["doctor"], env={"SEKD_FUSED": ""}).output
@@ -202,8 +203,8 @@ def test_bench_speed_reports_the_forward_and_the_fast_paths_agreement(shared, tm
     import json
 
     from click.testing import CliRunner
-    from sekd_sfm.cli.main import sekd
 
+    from sekd_sfm.cli.main import sekd
     from sekd_sfm.model import int8
 
     monkeypatch.setattr(int8, "available", lambda: False)  # no calibration here: tests/test_int8.py covers int8
@@ -222,8 +223,8 @@ def test_bench_speed_reports_an_int8_runtime_failure_and_times_the_other_paths(s
     import json
 
     from click.testing import CliRunner
-    from sekd_sfm.cli.main import sekd
 
+    from sekd_sfm.cli.main import sekd
     from sekd_sfm.model import int8
 
     def refuse(*args, **kwargs):  # what OpenVINO raises on a CPU it cannot compile the network for

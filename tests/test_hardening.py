@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
-from sekd_sfm.files import features as ff
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.failures import explain
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import partstore
 from sekd_sfm.files.images import ImageReadError, image_size, load_scaled, reduction_factor, to_original_pixels
 from sekd_sfm.runtime import resolve_device, set_num_threads
 
@@ -62,7 +63,7 @@ def extract_args(images: Path, output: Path, *extra) -> list:
 
 def test_disk_full_simulated_keeps_finished_images_and_resumes(tmp_path, monkeypatch):
     images, out = write_images(tmp_path / "img", 4), tmp_path / "f.h5"
-    real_save, saved = ff.PartStore.save, []
+    real_save, saved = partstore.PartStore.save, []
 
     def save_until_full(self, key, arrays):
         if len(saved) == 2:
@@ -70,11 +71,11 @@ def test_disk_full_simulated_keeps_finished_images_and_resumes(tmp_path, monkeyp
         saved.append(key)
         return real_save(self, key, arrays)
 
-    monkeypatch.setattr(ff.PartStore, "save", save_until_full)
+    monkeypatch.setattr(partstore.PartStore, "save", save_until_full)
     line = assert_one_error(run(*extract_args(images, out)), "disk full", "MB free there",
                             "run the same command again to resume")
     assert str(tmp_path) in line
-    monkeypatch.setattr(ff.PartStore, "save", real_save)
+    monkeypatch.setattr(partstore.PartStore, "save", real_save)
     result = run(*extract_args(images, out))
     assert result.exit_code == 0, result.output
     assert ff.list_keys(out) == ["0.png", "1.png", "2.png", "3.png"]

@@ -10,13 +10,14 @@ import hloc_readers as hloc
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
-from sekd_sfm.files import features as ff
-from sekd_sfm.files import matches as mf
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.extract import extract_features
 from sekd_sfm.features import FeatureConfig
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import matches as mf
+from sekd_sfm.files import partstore
 from sekd_sfm.match import MatchConfig, match_descriptors, match_features
 from sekd_sfm.pairs import write_pairs
 
@@ -167,13 +168,13 @@ def test_sekd_reads_old_hloc_match_files(tmp_path):
 
 def test_pairs_that_hloc_cannot_tell_apart_are_refused(tmp_path):
     kp = np.zeros((3, 2), np.float32)
-    parts = ff.PartStore(tmp_path / "f.h5")
-    ff.create_empty(tmp_path / "f.h5", {"format": ff.FORMAT, "feature_type": "kaze", "descriptor_dim": 2,
+    parts = partstore.PartStore(tmp_path / "f.h5")
+    partstore.create_empty(tmp_path / "f.h5", {"format": ff.FORMAT, "feature_type": "kaze", "descriptor_dim": 2,
                                         "descriptor_dtype": "float32", "config": "{}"})
     for name in ("a/x.jpg", "a-x.jpg", "c.jpg"):
         parts.save(name, {"keypoints": kp, "descriptors": np.eye(3, 2, dtype=np.float32),
                           "scores": np.ones(3, np.float32), "image_size": np.array([8, 8], np.int32)})
-    ff.merge_parts(tmp_path / "f.h5", parts)
+    partstore.merge_parts(tmp_path / "f.h5", parts)
     pairs = write_pairs([("a/x.jpg", "c.jpg"), ("c.jpg", "a-x.jpg")], tmp_path / "p.txt")
     with pytest.raises(SekdError, match=r"share hloc's key 'c.jpg/a-x.jpg'.*rename one"):
         match_features(tmp_path / "f.h5", pairs, tmp_path / "m.h5", progress=False)

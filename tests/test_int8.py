@@ -7,11 +7,11 @@ import pytest
 import torch
 from conftest import SHARED
 
-from sekd_sfm.model import int8
 from sekd_sfm.errors import SekdError
+from sekd_sfm.model import int8
 from sekd_sfm.model.inference import FastSEKD, SEKDConfig, SEKDExtractor
-from sekd_sfm.runtime import PRECISIONS
 from sekd_sfm.model.weights import load_model, save_checkpoint
+from sekd_sfm.runtime import PRECISIONS
 
 needs_int8 = pytest.mark.skipif(not int8.available(), reason='OpenVINO/NNCF not installed: pip install "sekd-sfm[int8]"')
 GOLDEN = SHARED / "reference" / "sekd_forward_golden_crop.npz"

@@ -11,16 +11,16 @@ import pytest
 import torch
 from click.testing import CliRunner
 from conftest import ROOT, SHARED
-from sekd_sfm.cli.main import sekd
 
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.model.inference import FastSEKD, SEKDConfig, SEKDExtractor
-from sekd_sfm.model.network import SEKDNet
 from sekd_sfm.model.lite import SEKDLiteNet, build_lite
+from sekd_sfm.model.network import SEKDNet
+from sekd_sfm.model.weights import EMBEDDED_MODELS, file_sha256, load_model, save_checkpoint
 from sekd_sfm.train import distill as distill_module
 from sekd_sfm.train.distill import DistillConfig, distill
 from sekd_sfm.train.model import initial_network
-from sekd_sfm.model.weights import EMBEDDED_MODELS, file_sha256, load_model, save_checkpoint
 
 LITE = EMBEDDED_MODELS["lite"]
 AUTHORS = EMBEDDED_MODELS["authors"]
@@ -255,7 +255,7 @@ def test_map_points_applies_a_homography_by_hand():
 
 
 def test_make_pair_views_show_the_same_scene_point_where_the_map_says(monkeypatch):
-    monkeypatch.setattr(distill_module, "photometric", lambda image, rng: image)  # geometry only
+    monkeypatch.setattr(distill_module, "jitter_gray", lambda image, rng: image)  # geometry only
     yy, xx = np.mgrid[0:300, 0:400]
     gray = (127 + 60 * np.sin(xx / 23.0) + 60 * np.cos(yy / 31.0)).astype(np.uint8)  # smooth: bilinear is exact to ~1 level
     config = DistillConfig(crop=[96, 128])

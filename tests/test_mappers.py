@@ -11,7 +11,6 @@ import time
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 from test_reconstruct import (
     CALIBRATED,
     SIFT,
@@ -21,6 +20,7 @@ from test_reconstruct import (
     write_scene,
 )
 
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.sfm.colmap import require_pycolmap
 from sekd_sfm.sfm.mapping import MAPPER_TYPES, default_options, mapper_options, resolve_mapper_type, run_mapper

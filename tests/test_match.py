@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
+from sekd_sfm.cli.main import sekd
+from sekd_sfm.errors import SekdError
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import matches as mf
-from sekd_sfm.errors import SekdError
+from sekd_sfm.files import partstore
 from sekd_sfm.match import (
     MatchConfig,
     augment_cols,
@@ -135,12 +136,12 @@ def write_features(path, images: dict, feature="sift", dim=None, dtype=None, dec
     dim, dtype = dim or first.shape[1], dtype or str(first.dtype)
     attrs = {"format": ff.FORMAT, "format_version": 1, "feature_type": declared or feature, "descriptor_dim": dim,
              "descriptor_dtype": dtype, "config": ff.json_attr({"feature": feature})}
-    ff.create_empty(path, attrs)
-    parts = ff.PartStore(path)
+    partstore.create_empty(path, attrs)
+    parts = partstore.PartStore(path)
     for name, (kp, desc) in images.items():
         parts.save(name, {"keypoints": np.asarray(kp, np.float32), "descriptors": desc,
                           "scores": np.ones(len(desc), np.float32), "image_size": np.array([64, 48], np.int32)})
-    ff.merge_parts(path, parts)
+    partstore.merge_parts(path, parts)
     return path
 
 
@@ -213,7 +214,7 @@ def test_resume_merges_parts_of_a_killed_run(small, tmp_path):
         del f["a.jpg"]["dir/bü.jpg"]
     # A part left by the killed run (content deliberately different from what matching would give).
     marker = {"matches0": np.array([4, 3, 2, 1, 0], np.int32), "matching_scores0": np.full(5, 0.5, np.float32)}
-    ff.PartStore(out).save(mf.pair_key("a.jpg", "dir/bü.jpg"), marker)
+    partstore.PartStore(out).save(mf.pair_key("a.jpg", "dir/bü.jpg"), marker)
     match_features(features, pairs, out, MatchConfig(ratio=0.8), progress=False)
     with h5py.File(out) as f:
         assert f["a.jpg"]["dir/bü.jpg"]["matches0"][()].tolist() == [4, 3, 2, 1, 0]  # reused, not recomputed

@@ -53,8 +53,8 @@ def test_fast_fp32_equals_plain_forward(authors_net):
 
 
 def test_missing_embedded_model_says_to_pass_weights(monkeypatch, tmp_path):
-    from sekd_sfm.model import weights
     from sekd_sfm.errors import SekdError
+    from sekd_sfm.model import weights
 
     monkeypatch.setitem(weights.EMBEDDED_MODELS, weights.DEFAULT_MODEL, tmp_path / "absent.pth")
     with pytest.raises(SekdError, match="--weights"):

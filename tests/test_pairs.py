@@ -2,10 +2,11 @@
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
-from sekd_sfm.files import features as ff
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import partstore
 from sekd_sfm.pairs import (
     PairsConfig,
     auto_mode,
@@ -23,13 +24,13 @@ from sekd_sfm.pairs import (
 
 def write_feature_file(path, names, feature="sift"):
     """A minimal valid feature file holding ``names`` (one keypoint each)."""
-    ff.create_empty(path, {"format": ff.FORMAT, "feature_type": feature, "descriptor_dim": 4,
+    partstore.create_empty(path, {"format": ff.FORMAT, "feature_type": feature, "descriptor_dim": 4,
                            "descriptor_dtype": "float32", "config": "{}"})
-    parts = ff.PartStore(path)
+    parts = partstore.PartStore(path)
     for name in names:
         parts.save(name, {"keypoints": np.zeros((1, 2), np.float32), "descriptors": np.ones((1, 4), np.float32),
                           "scores": np.ones(1, np.float32), "image_size": np.array([8, 8], np.int32)})
-    ff.merge_parts(path, parts)
+    partstore.merge_parts(path, parts)
     return path
 
 

@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from conftest import SHARED
-from sekd_sfm.cli.main import sekd
 
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.extract import extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.match import match_features
@@ -159,7 +159,7 @@ def _library_extract(cluster, images: Path, out: Path, config: str, ray_options:
     ns, address = cluster
     script = ("import logging, sys\n"
               "logging.basicConfig(level=logging.INFO, format='%(message)s')\n"
-              "from sekd_sfm.execution.raycluster import RayOptions\n"
+              "from sekd_sfm.execution import RayOptions\n"
               "from sekd_sfm.extract import extract_features\n"
               "from sekd_sfm.features import FeatureConfig\n"
               f"print(extract_features(sys.argv[1], sys.argv[2], FeatureConfig({config}), progress={progress}, "
@@ -194,14 +194,14 @@ def test_match_on_ray_identical_to_local(cluster, local_run, tmp_path):
 
 
 def _map_workers(ns: str) -> list[int]:
-    """PIDs of the extraction actors (process title ``ray::_ExtractWorker...``) in the namespace."""
+    """PIDs of the extraction actors (process title ``ray::_StageActor...``) in the namespace."""
     pids = []
     for pid in _namespace_pids(ns):
         try:
             title = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
         except OSError:
             continue
-        if title.startswith("ray::_ExtractWorker"):
+        if title.startswith("ray::_StageActor"):
             pids.append(pid)
     return pids
 
@@ -262,8 +262,8 @@ def _workers_of(raylet: int) -> list[tuple[int, bool]]:
             title = Path(f"/proc/{child}/cmdline").read_bytes()
         except OSError:
             continue
-        if title.startswith(b"ray::_ExtractWorker"):
-            found.append((int(child), title.startswith(b"ray::_ExtractWorker.__call__")))
+        if title.startswith(b"ray::_StageActor"):
+            found.append((int(child), title.startswith(b"ray::_StageActor.__call__")))
     return found
 
 
@@ -317,8 +317,7 @@ def test_node_leaving_mid_run_its_tasks_go_to_the_others(cluster, photos_320, tm
 
 def test_driver_killed_mid_run_resumes_without_redoing(cluster, photos_320, tmp_path):
     """kill -9 of the driver: the chunks the workers wrote stay, and the same command computes only the rest."""
-    from sekd_sfm.files import features as ff
-
+    from sekd_sfm.files import partstore
     images, local = photos_320
     out = tmp_path / "ray.h5"
     command = _ray_cli(cluster, "extract", str(images), "--resize-max", "320", "--max-keypoints", "300", "-o", str(out))
@@ -326,7 +325,7 @@ def test_driver_killed_mid_run_resumes_without_redoing(cluster, photos_320, tmp_
     killed, seen = _kill_when(driver, 24, lambda: driver.pid)
     driver.communicate(timeout=60)
     assert killed is not None, f"the driver finished before it could be killed (last progress {seen}/24)"
-    kept = ff.PartStore(out).keys()  # chunks written by the workers (more may land while Ray stops them)
+    kept = partstore.PartStore(out).keys()  # chunks written by the workers (more may land while Ray stops them)
     assert len(kept) >= seen >= 4
     rerun = subprocess.run(command + ["--no-progress"], check=False, capture_output=True, text=True, timeout=240)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
@@ -334,7 +333,7 @@ def test_driver_killed_mid_run_resumes_without_redoing(cluster, photos_320, tmp_
     assert done >= len(kept)  # nothing written before the kill is computed again
     if done < 24:  # (tasks in flight at the kill may all have finished: then nothing is left to do)
         helped = re.findall(r"the driver extracted (\d+) of the (\d+) images itself", rerun.stderr)
-        by_driver = int(helped[-1][0]) if helped else 0  # while the workers start (cluster._DriverHelper)
+        by_driver = int(helped[-1][0]) if helped else 0  # while the workers start (ray_run._DriverHelper)
         assert not helped or int(helped[-1][1]) == 24 - done
         assert re.search(rf"Ray: {24 - done - by_driver} imgs in ", rerun.stderr), rerun.stderr[-2000:]
     assert _contents(out) == local
@@ -412,7 +411,7 @@ def test_ray_start_up_notes_go_to_the_debug_log(capfd, caplog):
     """What Ray's C++ core writes to file descriptor 2 while connecting is logged at debug level, not shown."""
     import logging
 
-    from sekd_sfm.execution.raycluster import _stderr_to_log
+    from sekd_sfm.execution.ray_connect import _stderr_to_log
 
     with caplog.at_level(logging.DEBUG, logger="sekd"), _stderr_to_log():
         os.write(2, b"[W network_util.cc:330] Failed to determine local IP\n")
@@ -463,40 +462,44 @@ def test_workers_send_back_only_keys(local_run, tmp_path):
     """A task's arrays go to a chunk of ``<output>.parts/`` (shared storage); the driver gets ~100 B per item."""
     import torch
 
-    from sekd_sfm.files import features as ff
-    from sekd_sfm.execution.raycluster import _driver_config, _ExtractWorker, _MatchWorker
-    from sekd_sfm.extract import describe_config
+    from sekd_sfm.execution.ray_run import _StageActor
+    from sekd_sfm.extract import ExtractWorker, describe_config, worker_config
     from sekd_sfm.features import build_extractor
-    from sekd_sfm.match import MatchConfig, batches, check_feature_file
+    from sekd_sfm.files import features as ff
+    from sekd_sfm.files import matches as mf
+    from sekd_sfm.files import partstore
+    from sekd_sfm.match import MatchConfig, MatchWorker, batches, check_feature_file
     from sekd_sfm.match import describe_config as describe_match
     from sekd_sfm.pairs import read_pairs
 
     images, features, pairs, matches = local_run
     config, threads = FeatureConfig(resize_max=160, max_keypoints=300), torch.get_num_threads()
-    try:  # workers are plain classes: called here in-process, as a Ray actor would call them
+    try:  # actors are plain classes: called here in-process, as Ray would call them
         extractor, info = build_extractor(config)
         out = tmp_path / "features.h5"
-        worker = _ExtractWorker(str(images), _driver_config(config, extractor), describe_config(config, extractor, info),
-                                1, str(out))
+        args = (str(images), worker_config(config, extractor), describe_config(config, extractor, info))
+        worker = _StageActor(ExtractWorker, args, 1, str(out), ff.write_image_group)
         keys = sorted(p.name for p in images.iterdir())  # 5 photos and broken.jpg
-        back = worker({"key": np.array(keys, dtype=object)})
+        back = worker({"key": np.array(keys, dtype=object), "batch": np.arange(len(keys))})
 
         fattrs, sizes = check_feature_file(features)
         match_config = MatchConfig()
         groups = list(batches(read_pairs(pairs), sizes, match_config.max_elements))
         match_out = tmp_path / "matches.h5"
-        matcher = _MatchWorker(str(features), False, describe_match(match_config, str(fattrs["feature_type"]), False),
-                               match_config, 1, str(match_out))
-        match_back = matcher({"pairs": np.array([json.dumps(g) for g in groups], dtype=object)})
+        args = (str(features), False, describe_match(match_config, str(fattrs["feature_type"]), False), match_config)
+        matcher = _StageActor(MatchWorker, args, 1, str(match_out), mf.write_pair_group, joinable=False)
+        pair_keys = [mf.pair_key(a, b) for group in groups for a, b in group]
+        numbers = [number for number, group in enumerate(groups) for _ in group]  # the batches: one matrix each
+        match_back = matcher({"key": np.array(pair_keys, dtype=object), "batch": np.array(numbers)})
     finally:
         torch.set_num_threads(threads)
 
     assert sorted(back) == ["chunk", "error", "fatal", "key", "meta"]  # no arrays come back
     assert list(back["key"]) == keys and not back["fatal"].any() and not any(back["meta"])  # meta: shards only
     assert [bool(e) for e in back["error"]] == [k == "broken.jpg" for k in keys]
-    chunks = sorted(ff.PartStore(out).root.glob("*.npz"))
+    chunks = sorted(partstore.PartStore(out).root.glob("*.npz"))
     assert [c.name for c in chunks] == sorted({c for c in back["chunk"] if c})  # one chunk per task, on disk
-    saved = ff.PartStore(out).load_all()
+    saved = partstore.PartStore(out).load_all()
     assert sorted(saved) == [k for k in keys if k != "broken.jpg"]
     for key, arrays in saved.items():  # bit for bit what the local run wrote
         local = ff.read_features(features, key)
@@ -509,7 +512,7 @@ def test_workers_send_back_only_keys(local_run, tmp_path):
     assert sorted(match_back) == ["chunk", "error", "fatal", "key", "meta"] and len(match_back["key"]) == 10
     assert len(pickle.dumps(match_back)) < 200 * 10
     with h5py.File(matches, "r") as f:
-        for key, arrays in ff.PartStore(match_out).load_all().items():
+        for key, arrays in partstore.PartStore(match_out).load_all().items():
             group = f["/".join(json.loads(key))]
             for name, value in arrays.items():
                 assert value.tobytes() == group[name][()].tobytes()
@@ -517,7 +520,7 @@ def test_workers_send_back_only_keys(local_run, tmp_path):
 
 def test_unwritable_part_store_is_a_fatal_error(local_run, tmp_path):
     """A node that cannot write the output's folder stops the run with one error naming the folder and the node."""
-    from sekd_sfm.execution.raycluster import _TaskParts
+    from sekd_sfm.execution.ray_run import _TaskParts
 
     blocker = tmp_path / "file"
     blocker.write_text("")
@@ -544,7 +547,8 @@ class _FakeRay:
     ({"CPU": 4.0, "GPU": 8.0}, {"gpus_per_worker": 1}, 4),
 ])
 def test_worker_count_fits_the_cluster(resources, options, expected):
-    from sekd_sfm.execution.raycluster import RayOptions, _workers
+    from sekd_sfm.execution import RayOptions
+    from sekd_sfm.execution.ray_pool import _workers
 
     assert _workers(_FakeRay(**resources), RayOptions(**options)) == expected
 
@@ -554,7 +558,7 @@ def test_worker_count_fits_the_cluster(resources, options, expected):
 ])
 def test_tasks_grow_with_the_cluster(base, workers, expected):
     """The driver's cost is per task: beyond 32 workers, tasks grow so it receives as many tasks per second as at 32."""
-    from sekd_sfm.execution.raycluster import task_size
+    from sekd_sfm.execution import task_size
 
     assert task_size(base, workers) == expected
 
@@ -564,8 +568,9 @@ def test_tasks_grow_with_the_cluster(base, workers, expected):
     ({"CPU": 2.0}, {"gpus_per_worker": 1}, "--gpus-per-worker 1 but the Ray cluster has 0 GPUs"),
 ])
 def test_worker_size_larger_than_the_cluster_is_refused(resources, options, message):
-    from sekd_sfm.execution.raycluster import RayOptions, _workers
     from sekd_sfm.errors import SekdError
+    from sekd_sfm.execution import RayOptions
+    from sekd_sfm.execution.ray_pool import _workers
 
     with pytest.raises(SekdError, match=re.escape(message)):
         _workers(_FakeRay(**resources), RayOptions(**options))
@@ -606,8 +611,8 @@ def test_worker_skips_the_images_the_driver_claimed(local_run, tmp_path):
     """While workers start, the driver extracts from the end of the list; a worker skips those keys."""
     import torch
 
-    from sekd_sfm.execution.raycluster import BY_DRIVER, _claims_path, _driver_config, _ExtractWorker
-    from sekd_sfm.extract import describe_config
+    from sekd_sfm.execution.ray_run import BY_DRIVER, _claims_path, _StageActor
+    from sekd_sfm.extract import ExtractWorker, describe_config, worker_config
     from sekd_sfm.features import build_extractor
 
     images, _, _, _ = local_run
@@ -618,9 +623,9 @@ def test_worker_skips_the_images_the_driver_claimed(local_run, tmp_path):
     claims.write_text(f"{keys[-1]}\n{keys[-2]}\n")
     try:
         extractor, info = build_extractor(config)
-        worker = _ExtractWorker(str(images), _driver_config(config, extractor), describe_config(config, extractor, info),
-                                1, str(out), "copy", str(claims))
-        back = worker({"key": np.array(keys, dtype=object)})
+        args = (str(images), worker_config(config, extractor), describe_config(config, extractor, info))
+        worker = _StageActor(ExtractWorker, args, 1, str(out), None, "copy", str(claims))
+        back = worker({"key": np.array(keys, dtype=object), "batch": np.arange(len(keys))})
     finally:
         torch.set_num_threads(threads)
     by_key = dict(zip(back["key"], back["chunk"]))
@@ -651,12 +656,11 @@ class _FakeNodes:
     ([("10.0.0.5", 8.0, True)], {"gpus_per_worker": 1.0}, False),  # GPU workers compute otherwise
 ])
 def test_driver_helps_only_with_cores_ray_does_not_hold(monkeypatch, nodes, options, helps):
-    from sekd_sfm.execution import raycluster as cluster
+    from sekd_sfm.execution import RayOptions
+    from sekd_sfm.execution.ray_run import _driver_should_help
 
     monkeypatch.setattr("sekd_sfm.runtime.usable_cores", lambda: 2)
-    cpu_extractor = type("extractor", (), {"device": "cpu"})()
-    assert cluster._driver_should_help(_FakeNodes("127.0.0.1", nodes), cluster.RayOptions(**options),
-                                       cpu_extractor) is helps
+    assert _driver_should_help(_FakeNodes("127.0.0.1", nodes), RayOptions(**options)) is helps
 
 
 @pytest.mark.parametrize(("nodes", "options", "merges"), [
@@ -668,10 +672,11 @@ def test_driver_helps_only_with_cores_ray_does_not_hold(monkeypatch, nodes, opti
     ([("10.0.0.5", 8.0, True)], {"merge_while_running": False}, False),  # off
 ])
 def test_driver_merges_while_running_only_with_cores_ray_does_not_hold(monkeypatch, nodes, options, merges):
-    from sekd_sfm.execution import raycluster as cluster
+    from sekd_sfm.execution import RayOptions
+    from sekd_sfm.execution.ray_connect import _merges_while_running
 
     monkeypatch.setattr("sekd_sfm.runtime.usable_cores", lambda: 2)
-    assert cluster._merges_while_running(_FakeNodes("127.0.0.1", nodes), cluster.RayOptions(**options)) is merges
+    assert _merges_while_running(_FakeNodes("127.0.0.1", nodes), RayOptions(**options)) is merges
 
 
 def test_merge_while_running_gives_the_same_file(cluster, local_run, tmp_path):
@@ -757,7 +762,7 @@ class _ScriptedPool:
 
 
 def _tasks(count: int, size: int) -> list[dict]:
-    from sekd_sfm.execution.raycluster import _columns
+    from sekd_sfm.execution.ray_pool import _columns
 
     items = [{"key": f"img{i}.jpg"} for i in range(count)]
     return [_columns(items[i:i + size]) for i in range(0, count, size)]
@@ -765,7 +770,7 @@ def _tasks(count: int, size: int) -> list[dict]:
 
 def test_actor_pool_gives_each_task_once_and_the_next_to_whoever_finishes():
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
-    from sekd_sfm.execution.raycluster import TASKS_IN_FLIGHT, _pool_results
+    from sekd_sfm.execution.ray_pool import TASKS_IN_FLIGHT, _pool_results
 
     tasks = _tasks(9, 2)  # 4 tasks of 2 and one of 1
     assert list(tasks[0]["key"]) == ["img0.jpg", "img1.jpg"] and tasks[0]["key"].dtype == object
@@ -781,7 +786,7 @@ def test_actor_pool_gives_each_task_once_and_the_next_to_whoever_finishes():
 
 def test_actor_pool_with_more_actors_than_tasks():
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
-    from sekd_sfm.execution.raycluster import _pool_results
+    from sekd_sfm.execution.ray_pool import _pool_results
 
     pool = _ScriptedPool(3, [("back", 0), ("done", 0)])  # actors 1 and 2 never come up: no task waits for them
     assert [r["key"] for r in _pool_results(pool, pool.actors, _tasks(1, 4))] == ["img0.jpg"]
@@ -791,8 +796,8 @@ def test_actor_pool_with_more_actors_than_tasks():
 
 def test_actor_pool_gives_a_dead_workers_tasks_to_the_others_then_takes_it_back(monkeypatch):
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
-    from sekd_sfm.execution import raycluster as cluster
-    from sekd_sfm.execution.raycluster import _pool_results
+    from sekd_sfm.execution import ray_pool as cluster
+    from sekd_sfm.execution.ray_pool import _pool_results
 
     monkeypatch.setattr(cluster, "REPROBE_SECONDS", 0.0)
 
@@ -809,7 +814,7 @@ def test_actor_pool_gives_a_dead_workers_tasks_to_the_others_then_takes_it_back(
 
 def test_actor_pool_waits_for_its_only_worker_to_come_back(monkeypatch, caplog):
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
-    from sekd_sfm.execution import raycluster as cluster
+    from sekd_sfm.execution import ray_pool as cluster
 
     monkeypatch.setattr(cluster, "REPROBE_SECONDS", 0.0)
     pool = _ScriptedPool(1, [("back", 0), ("done", 0), ("die", 0), ("lost", 0), ("lost", 0), ("back", 0),

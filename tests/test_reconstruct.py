@@ -6,13 +6,14 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
-from sekd_sfm.files import features as ff
 from sekd_sfm.bench.strecha import rotation_angle_deg
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.extract import describe_config
 from sekd_sfm.features import FeatureConfig, build_extractor
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import partstore
 from sekd_sfm.sfm.colmap import open_database, require_pycolmap, set_options
 from sekd_sfm.sfm.database import CameraConfig, parse_camera_params
 from sekd_sfm.sfm.mapping import mapper_options, run_mapper
@@ -120,14 +121,14 @@ def write_scene(root, views: dict, feature_config: FeatureConfig):
     attrs = {"format": ff.FORMAT, "format_version": ff.FORMAT_VERSION, "feature_type": feature_config.feature,
              "descriptor_dim": 128, "descriptor_dtype": "float32",
              "config": ff.json_attr(describe_config(feature_config, extractor, info))}
-    ff.create_empty(out / "features.h5", attrs)
-    parts = ff.PartStore(out / "features.h5")
+    partstore.create_empty(out / "features.h5", attrs)
+    parts = partstore.PartStore(out / "features.h5")
     for name, view in views.items():
         cv2.imwrite(str(images / name), np.zeros((H, W), np.uint8))
         n = len(view["keypoints"])
         parts.save(name, {"keypoints": view["keypoints"], "descriptors": view["descriptors"],
                           "scores": np.ones(n, np.float32), "image_size": np.array([W, H], np.int32)})
-    ff.merge_parts(out / "features.h5", parts)
+    partstore.merge_parts(out / "features.h5", parts)
     return images, out
 
 

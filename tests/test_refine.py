@@ -184,6 +184,7 @@ def test_match_distances_and_summary_hand_computed():
 
 def test_bench_localization_on_two_real_photos(shared, tmp_path):
     from click.testing import CliRunner
+
     from sekd_sfm.cli.main import sekd
 
     result = CliRunner().invoke(sekd, ["bench", "localization", "--num-images", "2", "-o", str(tmp_path)])

@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
-from sekd_sfm.files import features as ff
 from sekd_sfm import retrieval
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
+from sekd_sfm.files import features as ff
+from sekd_sfm.files import partstore
 from sekd_sfm.pairs import PairsConfig, make_pairs, read_pairs
 from sekd_sfm.retrieval import (
     RetrievalConfig,
@@ -33,19 +34,19 @@ SMALL = RetrievalConfig(vocabulary_size=8, pca_dim=32, max_samples=5000)
 def feature_file(path, images: dict, feature="sekd"):
     """A feature file holding ``images`` {name: N x D descriptors (float32 or uint8)}."""
     first = next(iter(images.values()), np.zeros((0, 4), np.float32))
-    ff.create_empty(path, {"format": ff.FORMAT, "feature_type": feature, "descriptor_dim": first.shape[1],
+    partstore.create_empty(path, {"format": ff.FORMAT, "feature_type": feature, "descriptor_dim": first.shape[1],
                            "descriptor_dtype": str(first.dtype), "config": "{}"})
     add_images(path, images)
     return path
 
 
 def add_images(path, images: dict):
-    parts = ff.PartStore(path)
+    parts = partstore.PartStore(path)
     for name, desc in images.items():
         n = len(desc)
         parts.save(name, {"keypoints": np.zeros((n, 2), np.float32), "descriptors": desc,
                           "scores": np.ones(n, np.float32), "image_size": np.array([8, 8], np.int32)})
-    ff.merge_parts(path, parts)
+    partstore.merge_parts(path, parts)
 
 
 def scene_collection(scenes=4, per_scene=5, distractors=6, dim=32, binary=False, seed=0):

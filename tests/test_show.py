@@ -10,8 +10,8 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from sekd_sfm.cli.main import sekd
 
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import matches as mf
 from sekd_sfm.viz import INLIER, OUTLIER, draw_pair, inlier_mask

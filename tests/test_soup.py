@@ -3,10 +3,10 @@ import pytest
 import torch
 
 from sekd_sfm.errors import SekdError
-from sekd_sfm.model.network import SEKDNet
 from sekd_sfm.model.lite import SEKDLiteNet, build_lite
-from sekd_sfm.train.soup import average_checkpoints, main
+from sekd_sfm.model.network import SEKDNet
 from sekd_sfm.model.weights import file_sha256, load_model, save_checkpoint
+from sekd_sfm.train.soup import average_checkpoints, main
 
 SMALL = {"channels": [8, 16, 32]}
 

@@ -12,16 +12,16 @@ import pytest
 import torch
 from click.testing import CliRunner
 from conftest import SHARED
-from sekd_sfm.cli.main import sekd
 
+from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
+from sekd_sfm.model.weights import load_model
 from sekd_sfm.runtime import tuning_requested, untune_allocator
 from sekd_sfm.train import labels as labels_module
 from sekd_sfm.train.config import TrainConfig, load_run_config, resolve_config
 from sekd_sfm.train.evolve import RunFolder, Runner, evolve, train_one_step
 from sekd_sfm.train.report import validation_position
 from sekd_sfm.train.steps import HalfwayDrop, _optimiser
-from sekd_sfm.model.weights import load_model
 
 
 def write_small_coco(folder, count: int, long_side: int = 128):

@@ -19,12 +19,12 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from ..evaluation import metrics
+from ..evaluation.datasets import Sequence, find_sequences
 from ..files import features as ff
 from ..files.images import read_image, resized_to_original_matrix
 from ..match import match_descriptors
 from ..runtime import package_versions, timing_context
-from ..evaluation import metrics
-from ..evaluation.datasets import Sequence, find_sequences
 from .methods import Method, cached_features, evaluate_each
 
 logger = logging.getLogger("sekd")

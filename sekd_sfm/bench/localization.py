@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SekdError
+from ..evaluation.samplers import random_centred_homography
 from ..files.atomic import write_atomic
 from ..runtime import package_versions, shared_dir, timing_context
 from .methods import Method, evaluate_each
@@ -41,17 +42,10 @@ class LocalizationConfig:
 
 
 def random_homography(rng: np.random.Generator, width: int, height: int, config: LocalizationConfig) -> np.ndarray:
-    """A 3x3 homography about the photo's centre (rotation, scale, perspective) plus a sub-pixel shift."""
-    angle = np.radians(rng.uniform(-config.max_rotation_deg, config.max_rotation_deg))
-    scale = rng.uniform(*config.scale_range)
-    rotation = np.array([[scale * np.cos(angle), -scale * np.sin(angle), 0],
-                         [scale * np.sin(angle), scale * np.cos(angle), 0], [0, 0, 1]])
-    perspective = np.eye(3)
-    perspective[2, :2] = rng.uniform(-config.perspective, config.perspective, 2)
-    centre = np.array([[1, 0, -width / 2], [0, 1, -height / 2], [0, 0, 1]])
-    H = np.linalg.inv(centre) @ rotation @ perspective @ centre
-    H[:2, 2] += rng.uniform(-0.5, 0.5, 2)
-    return H / H[2, 2]
+    """A 3x3 homography about the photo's centre (rotation, scale, perspective) plus a sub-pixel shift
+    (``samplers.random_centred_homography`` with the benchmark's ranges)."""
+    return random_centred_homography(rng, width, height, config.max_rotation_deg, config.scale_range,
+                                     config.perspective)
 
 
 def match_distances(keypoints0: np.ndarray, keypoints1: np.ndarray, matches: np.ndarray, H: np.ndarray,
@@ -99,11 +93,11 @@ def warp_photos(photos: list[Path], folder: Path, config: LocalizationConfig) ->
 def _evaluate(method: Method, images: Path, work: Path, homographies: dict, config: LocalizationConfig) -> dict:
     import h5py
 
-    from ..files import matches as mf
     from ..extract import extract_features
     from ..features import FeatureConfig
-    from ..model.inference import SEKDConfig
+    from ..files import matches as mf
     from ..match import MatchConfig, match_features
+    from ..model.inference import SEKDConfig
     from ..pairs import write_pairs
     from ..sfm.refine import refine_keypoints, refine_summary
 

@@ -18,12 +18,12 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from ..files import features as ff
 from ..errors import SekdError
-from ..match import DEFAULT_RATIO, FALLBACK_RATIO, ROOTSIFT_FEATURES, match_descriptors
-from ..runtime import package_versions, timing_context
 from ..evaluation import metrics
 from ..evaluation.datasets import PoseScene, read_pose_scene
+from ..files import features as ff
+from ..match import DEFAULT_RATIO, FALLBACK_RATIO, ROOTSIFT_FEATURES, match_descriptors
+from ..runtime import package_versions, timing_context
 from .methods import Method, cached_features, evaluate_each
 
 logger = logging.getLogger("sekd")

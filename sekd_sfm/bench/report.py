@@ -6,8 +6,8 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
-from ..files.atomic import write_atomic
 from ..evaluation.metrics import THRESHOLDS
+from ..files.atomic import write_atomic
 
 
 def _pct(value) -> str:

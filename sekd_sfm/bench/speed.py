@@ -132,8 +132,8 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
         "sekd fast auto": lambda: SEKDExtractor(net, config),
         "opencv sift": lambda: SiftExtractor(max_keypoints),
     }
-    from ..model import int8
     from ..failures import first_line
+    from ..model import int8
     if int8.available():  # optional extra; its one-time calibration runs before timing (cached per weights)
         factories["sekd int8"] = lambda: SEKDExtractor(net, SEKDConfig(**{**config.as_dict(), "precision": "int8"}))
     if lite is not None:

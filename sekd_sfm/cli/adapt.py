@@ -6,9 +6,9 @@ from pathlib import Path
 import click
 
 from sekd_sfm.errors import SekdError
+from sekd_sfm.model.weights import DEFAULT_MODEL, EMBEDDED_MODELS
 from sekd_sfm.train.adapt import SCHEDULES, AdaptConfig, adapt_or_reuse
 from sekd_sfm.train.adapt import adapt as run_adapt
-from sekd_sfm.model.weights import DEFAULT_MODEL, EMBEDDED_MODELS
 
 ADAPT_KEY = "sekd.adapt"
 #: The adapted model of ``reconstruct --adapt``, inside its output folder (run folder beside it).

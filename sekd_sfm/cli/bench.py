@@ -8,8 +8,8 @@ import click
 
 from sekd_sfm.bench.methods import with_weights
 from sekd_sfm.bench.speed import benchmark_speed
-from sekd_sfm.runtime import PRECISIONS, shared_dir
 from sekd_sfm.model.weights import load_model
+from sekd_sfm.runtime import PRECISIONS, shared_dir
 
 from .options import num_threads_option, weights_option
 

@@ -5,35 +5,28 @@ from pathlib import Path
 
 import click
 
+from sekd_sfm.confs import build_configs
 from sekd_sfm.features import FEATURE_TYPES
 
-from .match import match_options
-from .options import feature_options, num_threads_option, runtime_options, weights_option
-from .presets import configs_from_context
-from .reconstruct import camera_options, mapper_option, mapper_type_option, refine_option, seed_option
+from .options import OptionValues, extraction_options, num_threads_option, weights_option
+from .reconstruct import camera_options, mapping_options, matching_options, reconstruct_config
 
 
 @click.command()
 @click.argument("scene")
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Folder for results.json, results.md and the work files. Default: bench-sfm-SCENE.")
-@feature_options
-@weights_option
-@runtime_options
-@match_options
+@extraction_options(max_pixels=False)
+@num_threads_option
+@matching_options
 @camera_options
-@mapper_type_option
-@mapper_option
-@refine_option
-@seed_option
+@mapping_options(verification=False)
 @click.option("--no-baseline", is_flag=True, help="Skip pycolmap's SIFT pipeline.")
 @click.option("-m", "--method", "methods", multiple=True,
               help="Run our pipeline once per method ([LABEL=]FEATURE[:WEIGHTS], as `bench homography`), "
                    "instead of once with --feature/--weights.")
-def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel, weights,
-        num_threads, device, precision, match_mode, ratio, rootsift, camera_model, camera_mode, camera_params, principal_point,
-        mapper_type, mapper,
-        refine, seed, no_baseline, methods) -> None:
+def sfm(scene: str, output: Path | None, extraction: OptionValues, num_threads: int | None, matching: OptionValues,
+        camera: OptionValues, mapping: OptionValues, no_baseline: bool, methods: tuple[str, ...]) -> None:
     """Reconstruct SCENE with our pipeline and with pycolmap's SIFT; compare with ground-truth cameras.
 
     \b
@@ -50,23 +43,14 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
       sekd bench sfm fountain-P11 -m sift -m disk -m sekd:../shared/weights/sekd/sekd.pth
     """
     from sekd_sfm.bench.methods import available, parse_method, with_weights
-    from sekd_sfm.bench.sfm import benchmark_sfm
+    from sekd_sfm.bench.sfm import benchmark_sfm, sfm_markdown
     from sekd_sfm.pairs import PairsConfig
-    from sekd_sfm.sfm.database import CameraConfig
-    from sekd_sfm.sfm.reconstruct import ReconstructConfig
 
-    features_config, matching = configs_from_context()
-    features_config.resize_max = features_config.resize_max or 1600
-    config = ReconstructConfig(
-        features=features_config, pairs=PairsConfig(mode="exhaustive"), matching=matching,
-        camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params,
-                            principal_point=principal_point), mapper_type=mapper_type,
-        mapper=list(mapper), seed=seed)
-    config.refine.enabled = refine
+    # Every pair, as the pycolmap baseline (exhaustive matching): the pipelines differ in features, not pairs.
+    config = reconstruct_config(extraction, matching, camera, mapping, pairs=PairsConfig(mode="exhaustive"))
+    to_run = available([parse_method(m) for m in with_weights(methods, config.features.weights)])
     report = benchmark_sfm(scene, output or Path(f"bench-sfm-{Path(scene).name}"), config, baseline=not no_baseline,
-                           num_threads=num_threads, methods=available([parse_method(m) for m in with_weights(methods, weights)]))
-    from sekd_sfm.bench.sfm import sfm_markdown
-
+                           num_threads=num_threads, methods=to_run)
     click.echo(sfm_markdown(report))
 
 
@@ -82,7 +66,8 @@ def sfm(scene, output, feature, max_keypoints, threshold, nms_radius, resize_max
               help="Pairs (i, i+1) .. (i, i+GAP) of the scene's images in name order.")
 @weights_option
 @num_threads_option
-def ratios(scene, output, feature_list, max_keypoints, resize_max, max_gap, weights, num_threads) -> None:
+def ratios(scene: str, output: Path, feature_list: str, max_keypoints: int, resize_max: int, max_gap: int,
+           weights: str | None, num_threads: int | None) -> None:
     """Measure the ratio-test threshold per feature type on SCENE's ground truth (the matcher's defaults).
 
     \b
@@ -97,7 +82,7 @@ def ratios(scene, output, feature_list, max_keypoints, resize_max, max_gap, weig
     """
     from sekd_sfm.bench.sfm import benchmark_ratios, ratios_markdown
 
-    base, _ = configs_from_context()
+    base, _ = build_configs({"max_keypoints": max_keypoints, "resize_max": resize_max, "weights": weights})
     features = [f.strip() for f in feature_list.split(",") if f.strip()]
     unknown = sorted(set(features) - set(FEATURE_TYPES))
     if unknown:

@@ -6,9 +6,9 @@ from pathlib import Path
 import click
 
 from sekd_sfm.errors import SekdError
+from sekd_sfm.model.weights import DEFAULT_MODEL
 from sekd_sfm.train.distill import TRAIN_PRECISIONS, DistillConfig
 from sekd_sfm.train.distill import distill as run_distill
-from sekd_sfm.model.weights import DEFAULT_MODEL
 
 
 @click.command()

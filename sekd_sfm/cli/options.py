@@ -1,16 +1,80 @@
-"""Options shared by several commands, declared once."""
+"""Options shared by several commands, declared once, and option groups.
+
+An option group (``option_group``) adds a set of options to a command and hands the command
+their values as ONE argument, an ``OptionValues``: a command's signature then names its groups
+(extraction, matching, execution, ...) instead of dozens of options, and one function per
+command turns the groups into its typed settings.
+"""
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
 
 import click
+from click.core import ParameterSource
 
-from sekd_sfm.execution.raycluster import EXECUTORS, MERGES, RayOptions
+from sekd_sfm.execution import EXECUTORS, MERGES, RayOptions
 from sekd_sfm.features import FEATURE_TYPES
 from sekd_sfm.files.images import DEFAULT_MAX_PIXELS
 from sekd_sfm.runtime import DEVICES, PRECISIONS
 
 MODEL_KEY = "sekd.model"
+#: A function that adds options to a click command function (``click.option(...)`` and the groups below).
+Decorator = Callable[[Callable], Callable]
+#: Where a value the user chose comes from; any other source is a default, which a --conf preset may replace.
+USER_SOURCES = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT, ParameterSource.PROMPT)
+
+
+@dataclass(frozen=True)
+class OptionValues:
+    """The values of one option group, by parameter name, and the names of those the user gave (``explicit``)."""
+
+    values: Mapping[str, Any]
+    explicit: frozenset[str] = frozenset()
+
+    def __getitem__(self, name: str) -> Any:
+        return self.values[name]
+
+    def get(self, name: str, default: Any = None) -> Any:
+        return self.values.get(name, default)
+
+    def __or__(self, other: OptionValues) -> OptionValues:
+        """Both groups' values: a --conf preset sets extraction and matching options together."""
+        return OptionValues({**self.values, **other.values}, self.explicit | other.explicit)
+
+
+def option_group(name: str, *declarations: Decorator) -> Decorator:
+    """A decorator adding the options of ``declarations`` (in this order) to a command, which receives their
+    values as one keyword argument ``name``, an OptionValues, instead of one parameter per option."""
+    keys = _value_names(declarations)
+
+    def decorate(command: Callable) -> Callable:
+        @functools.wraps(command)
+        def grouped(*args, **kwargs):
+            values = {key: kwargs.pop(key) for key in keys}
+            ctx = click.get_current_context()
+            explicit = frozenset(key for key in keys if ctx.get_parameter_source(key) in USER_SOURCES)
+            return command(*args, **{name: OptionValues(values, explicit)}, **kwargs)
+
+        return _stack(declarations, grouped)
+
+    return decorate
+
+
+def _value_names(declarations: Iterable[Decorator]) -> tuple[str, ...]:
+    """The parameter names click passes the values of ``declarations`` under (read off a throwaway function, so a
+    group never repeats the names its options already declare); options with expose_value=False pass none."""
+    probe = _stack(declarations, lambda: None)
+    return tuple(param.name for param in getattr(probe, "__click_params__", ()) if param.expose_value)
+
+
+def _stack(declarations: Iterable[Decorator], f: Callable) -> Callable:
+    """``f`` decorated by ``declarations`` as if written one above the other, the first on top (first in --help)."""
+    for declare in reversed(list(declarations)):
+        f = declare(f)
+    return f
 
 
 def _keep_model(ctx: click.Context, _param, value: str | None) -> str | None:
@@ -28,6 +92,7 @@ def _weights_or_model(ctx: click.Context, _param, value: str | None) -> str | No
         return value
     if value is not None:
         raise SekdError(f"--model {model} and --weights {value} both name the SEKD model; give one of them")
+    # A check while parsing (the one place that sees both): --feature is parsed by now.
     feature = ctx.params.get("feature")
     if feature not in (None, "sekd"):
         raise SekdError(f"--model {model} selects a SEKD model; --feature {feature} does not use it (drop --model)")
@@ -52,26 +117,28 @@ def weights_option(f):
     )(f)
 
 
-def num_threads_option(f):
-    """``--num-threads``: CPU threads of the networks and OpenCV (default: every core the process may use)."""
-    return click.option("--num-threads", type=click.IntRange(min=1), default=None,
-                        help="CPU threads (default: all available cores).")(f)
+num_threads_option = click.option(
+    "--num-threads", type=click.IntRange(min=1), default=None, help="CPU threads (default: all available cores).")
+device_option = click.option("--device", type=click.Choice(DEVICES), default="auto", show_default=True,
+                             help="auto uses a CUDA GPU when one is present.")
+precision_option = click.option(
+    "--precision", type=click.Choice(PRECISIONS), default="auto", show_default=True,
+    help="auto = bf16 on CPUs with native bf16 (AVX512-BF16/AMX, ~4x faster), else fp32. "
+         "int8 = quantized network (CPU; needs pip install \"sekd-sfm[int8]\"; calibrated once "
+         "per weights, cached in ~/.cache/sekd or $SEKD_CACHE).")
 
 
 def runtime_options(f):
-    f = num_threads_option(f)
-    f = click.option("--device", type=click.Choice(DEVICES), default="auto", show_default=True,
-                     help="auto uses a CUDA GPU when one is present.")(f)
-    f = click.option("--precision", type=click.Choice(PRECISIONS), default="auto", show_default=True,
-                     help="auto = bf16 on CPUs with native bf16 (AVX512-BF16/AMX, ~4x faster), else fp32. "
-                          "int8 = quantized network (CPU; needs pip install \"sekd-sfm[int8]\"; calibrated once "
-                          "per weights, cached in ~/.cache/sekd or $SEKD_CACHE).")(f)
-    return f
+    """--precision, --device, --num-threads."""
+    return _stack((precision_option, device_option, num_threads_option), f)
 
 
-def feature_options(f):
-    """--feature and the detection options of `extract`."""
-    options = [
+RESIZE_HELP = "Downscale images so the long side is at most N px; keypoints are mapped back to original pixels."
+
+
+def feature_options(f, *, resize_help: str = RESIZE_HELP):
+    """--feature and the detection options of `extract` (``resize_help``: a command's own words on --resize-max)."""
+    return _stack([
         click.option("--feature", type=click.Choice(FEATURE_TYPES), default="sekd", show_default=True,
                      help="SEKD, or a classic OpenCV feature written in the same file format."),
         click.option("--max-keypoints", type=click.IntRange(min=1), default=2000, show_default=True,
@@ -81,37 +148,32 @@ def feature_options(f):
                      help="SEKD: minimum keypoint probability, in (0, 1) (the authors used 0.4 for benchmarks)."),
         click.option("--nms-radius", type=click.IntRange(min=0), default=4, show_default=True,
                      help="SEKD: non-maximum suppression radius in pixels."),
-        click.option("--resize-max", type=click.IntRange(min=16), default=None,
-                     help="Downscale images so the long side is at most N px; keypoints are mapped back to original pixels."),
+        click.option("--resize-max", type=click.IntRange(min=16), default=None, help=resize_help),
         click.option("--multi-scale", is_flag=True, help="SEKD: also detect on /2, /4, ... downscaled images."),
         click.option("--subpixel/--no-subpixel", default=True, show_default=True,
                      help="SEKD: refine keypoints to sub-pixel accuracy (quadratic fit); --no-subpixel keeps the "
                           "integer pixel of each peak, as the SEKD paper's protocol."),
-    ]
-    for option in reversed(options):
-        f = option(f)
-    return f
+    ], f)
 
 
-def max_pixels_option(f):
-    """--max-pixels: the pixel cap of `extract` and `reconstruct`."""
-    return click.option(
-        "--max-pixels", type=click.IntRange(min=0), default=DEFAULT_MAX_PIXELS, show_default=True,
-        help="Images with more pixels are decoded at 1/2, 1/4 or 1/8 size (keypoints still in original "
-             "pixels); beyond 64x the cap they are skipped and listed as failed. 0 = no cap.",
-    )(f)
+max_pixels_option = click.option(
+    "--max-pixels", type=click.IntRange(min=0), default=DEFAULT_MAX_PIXELS, show_default=True,
+    help="Images with more pixels are decoded at 1/2, 1/4 or 1/8 size (keypoints still in original "
+         "pixels); beyond 64x the cap they are skipped and listed as failed. 0 = no cap.")
 
 
-def executor_options(f):
-    """--executor, --ray-address, --threads-per-worker, --gpus-per-worker, passed on as ``executor`` and ``ray_options``."""
+def extraction_options(*, max_pixels: bool = True, resize_help: str = RESIZE_HELP) -> Decorator:
+    """The group ``extraction``: --feature ... --subpixel, --max-pixels (if ``max_pixels``), --model/--weights,
+    --precision and --device; what ``presets.feature_and_match_configs`` makes a FeatureConfig of (and the
+    matcher's device)."""
+    declarations = [functools.partial(feature_options, resize_help=resize_help)]
+    declarations += [max_pixels_option] if max_pixels else []
+    return option_group("extraction", *declarations, weights_option, precision_option, device_option)
 
-    @functools.wraps(f)
-    def command(*args, ray_address, threads_per_worker, gpus_per_worker, ray_merge, **kwargs):
-        kwargs["ray_options"] = RayOptions(address=ray_address, threads_per_worker=threads_per_worker,
-                                           gpus_per_worker=gpus_per_worker, merge=ray_merge)
-        return f(*args, **kwargs)
 
-    options = [
+def executor_declarations(f):
+    """--executor, --ray-address, --threads-per-worker, --gpus-per-worker, --ray-merge, each passed as itself."""
+    return _stack([
         click.option("--executor", type=click.Choice(EXECUTORS), default="local", show_default=True,
                      help="local: this machine; ray: the workers of a Ray cluster (needs pip install "
                           "\"sekd-sfm[ray]\" and files every node sees at the same path; docs/cluster.md)."),
@@ -127,7 +189,20 @@ def executor_options(f):
                           "(the driver copies at disk speed, ~300-440 images/s); virtual = workers write shard "
                           "files in features.h5.shards/ that features.h5 references (thousands of images/s: for "
                           "clusters of more than ~64 workers; keep the folder beside the file)."),
-    ]
-    for option in reversed(options):
-        command = option(command)
-    return command
+    ], f)
+
+
+def ray_options(execution: OptionValues) -> RayOptions:
+    """The RayOptions of the values of ``executor_declarations``."""
+    return RayOptions(address=execution["ray_address"], threads_per_worker=execution["threads_per_worker"],
+                      gpus_per_worker=execution["gpus_per_worker"], merge=execution["ray_merge"])
+
+
+def executor_options(f):
+    """``executor_declarations``, passed on as ``executor`` and ``ray_options`` (extract, match)."""
+
+    @functools.wraps(f)
+    def command(*args, execution: OptionValues, **kwargs):
+        return f(*args, executor=execution["executor"], ray_options=ray_options(execution), **kwargs)
+
+    return option_group("execution", executor_declarations)(command)

@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import click
-from click.core import ParameterSource
 
 from sekd_sfm.confs import CONFS, build_configs, describe_confs
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.match import MatchConfig
+
+from .options import USER_SOURCES, OptionValues
 
 CONF_KEY = "sekd.conf"
 
@@ -36,14 +37,25 @@ def current_conf(ctx: click.Context | None = None) -> str | None:
     return (ctx or click.get_current_context()).meta.get(CONF_KEY)
 
 
+def feature_and_match_configs(extraction: OptionValues, matching: OptionValues,
+                              conf: str | None) -> tuple[FeatureConfig, MatchConfig]:
+    """FeatureConfig and MatchConfig of a command's ``extraction`` and ``matching`` option groups, the preset
+    ``conf`` applied to the options the user left at their defaults."""
+    options = extraction | matching
+    return build_configs(options.values, options.explicit, conf)
+
+
 def explicit_options(ctx: click.Context) -> set[str]:
     """Names of the options the user gave (command line or environment), as opposed to defaults."""
-    given = (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT, ParameterSource.PROMPT)
-    return {name for name in ctx.params if ctx.get_parameter_source(name) in given}
+    return {name for name in ctx.params if ctx.get_parameter_source(name) in USER_SOURCES}
 
 
 def configs_from_context(ctx: click.Context | None = None) -> tuple[FeatureConfig, MatchConfig]:
-    """FeatureConfig and MatchConfig of the running command: its options, with --conf applied to the defaulted ones."""
+    """FeatureConfig and MatchConfig of the running command: its options, with --conf applied to the defaulted ones.
+
+    For commands that take the options one by one (extract, match); commands with option groups
+    use ``feature_and_match_configs``, which reads each value once, where the command passes it.
+    """
     ctx = ctx or click.get_current_context()
     return build_configs(ctx.params, explicit_options(ctx), current_conf(ctx))
 

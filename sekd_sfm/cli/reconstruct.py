@@ -1,40 +1,66 @@
-"""``sekd reconstruct`` (images -> COLMAP model), ``sekd relpose`` (two images -> R, t) and ``sekd export``."""
+"""``sekd reconstruct`` (images -> COLMAP model), ``sekd relpose`` (two images -> R, t) and ``sekd export``.
+
+The SfM commands (these and ``sekd bench sfm``) take their options in groups, each passed to the
+command as one argument (``options.option_group``): extraction, pairing, matching, camera,
+mapping, execution. ``reconstruct_config`` and ``run_settings`` turn the groups into the typed
+settings of ``sekd_sfm.sfm.reconstruct``: the one place where an option becomes a setting.
+"""
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from sekd_sfm.confs import output_names
 from sekd_sfm.errors import SekdError
-from sekd_sfm.sfm.database import CAMERA_MODES, PRINCIPAL_POINT_MIN_IMAGES, PRINCIPAL_POINT_MODES
+from sekd_sfm.pairs import PairsConfig
+from sekd_sfm.sfm.database import CAMERA_MODES, PRINCIPAL_POINT_MIN_IMAGES, PRINCIPAL_POINT_MODES, CameraConfig
 
 from .adapt import adapt_in_line, adapt_option
 from .match import match_options, pairs_config, pairs_options
-from .options import executor_options, feature_options, max_pixels_option, runtime_options, weights_option
-from .presets import conf_option, configs_from_context, current_conf
+from .options import (
+    Decorator,
+    OptionValues,
+    executor_declarations,
+    extraction_options,
+    num_threads_option,
+    option_group,
+    ray_options,
+)
+from .presets import conf_option, current_conf, feature_and_match_configs
+
+if TYPE_CHECKING:  # imported where used: the CLI starts without torch and pycolmap
+    from sekd_sfm.sfm.reconstruct import ReconstructConfig, RunSettings
+
+#: reconstruct's own words on --resize-max: its default differs from extract's (full size).
+RECONSTRUCT_RESIZE_HELP = (
+    "Downscale images so the long side is at most N px (keypoints are mapped back to original "
+    "pixels). Default 1600, as hloc: full-size photos cost far more to extract for little "
+    "gain in pose accuracy; give e.g. 100000 for full size.")
+
+camera_options = option_group(
+    "camera",
+    click.option("--camera-model", default="SIMPLE_RADIAL", show_default=True,
+                 help="COLMAP camera model (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, ...)."),
+    click.option("--camera-mode", type=click.Choice(list(CAMERA_MODES)), default="auto", show_default=True,
+                 help="Cameras shared by: auto (same size and EXIF), single (all images), per-folder, per-image."),
+    click.option("--camera-params", default=None,
+                 help="Known intrinsics as comma-separated numbers in the model's order, e.g. "
+                      "'f,cx,cy,k' for SIMPLE_RADIAL, in COLMAP pixel coordinates (pixel centre at +0.5)."),
+    click.option("--principal-point", type=click.Choice(PRINCIPAL_POINT_MODES), default="auto", show_default=True,
+                 help="Bundle adjustment refines each camera's principal point (refine) or keeps it at the image "
+                      f"centre (fixed, COLMAP's default). auto: refine when every camera has at least "
+                      f"{PRINCIPAL_POINT_MIN_IMAGES} photos and --camera-params is not given (a lens's centre is "
+                      "rarely the image's; many views of one camera can measure it)."),
+)
 
 
-def camera_options(f):
-    """--camera-model, --camera-mode, --camera-params, --principal-point."""
-    options = [
-        click.option("--camera-model", default="SIMPLE_RADIAL", show_default=True,
-                     help="COLMAP camera model (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, ...)."),
-        click.option("--camera-mode", type=click.Choice(list(CAMERA_MODES)), default="auto", show_default=True,
-                     help="Cameras shared by: auto (same size and EXIF), single (all images), per-folder, per-image."),
-        click.option("--camera-params", default=None,
-                     help="Known intrinsics as comma-separated numbers in the model's order, e.g. "
-                          "'f,cx,cy,k' for SIMPLE_RADIAL, in COLMAP pixel coordinates (pixel centre at +0.5)."),
-        click.option("--principal-point", type=click.Choice(PRINCIPAL_POINT_MODES), default="auto", show_default=True,
-                     help="Bundle adjustment refines each camera's principal point (refine) or keeps it at the image "
-                          f"centre (fixed, COLMAP's default). auto: refine when every camera has at least "
-                          f"{PRINCIPAL_POINT_MIN_IMAGES} photos and --camera-params is not given (a lens's centre is "
-                          "rarely the image's; many views of one camera can measure it)."),
-    ]
-    for option in reversed(options):
-        f = option(f)
-    return f
+def camera_config(camera: OptionValues) -> CameraConfig:
+    """The CameraConfig of the group ``camera``."""
+    return CameraConfig(model=camera["camera_model"], mode=camera["camera_mode"], params=camera["camera_params"],
+                        principal_point=camera["principal_point"])
 
 
 def _print_option_help(ctx: click.Context, param: click.Parameter, values) -> tuple:
@@ -84,39 +110,77 @@ refine_option = click.option(
 seed_option = click.option("--seed", type=int, default=0, show_default=True,
                            help="Random seed of RANSAC and the mapper.")
 
+verification_option = click.option(
+    "--verification", multiple=True, metavar="KEY=VALUE", callback=_print_option_help,
+    help="Set an option of pycolmap's TwoViewGeometryOptions, e.g. ransac.max_error=2 "
+         "(repeatable; `--verification help` lists them).")
+
+
+def mapping_options(*, verification: bool = True) -> Decorator:
+    """The group ``mapping``: --mapper-type, --mapper, --refine, --verification (if ``verification``) and --seed,
+    how matches become a model."""
+    declarations = [mapper_type_option, mapper_option, refine_option]
+    declarations += [verification_option] if verification else []
+    return option_group("mapping", *declarations, seed_option)
+
+
+pairing_options = option_group("pairing", pairs_options)
+matching_options = option_group("matching", match_options)
+execution_options = option_group(
+    "execution",
+    click.option("--overwrite", is_flag=True, help="Recompute features and matches instead of reusing them."),
+    click.option("--no-progress", is_flag=True, help="No progress bars."),
+    executor_declarations,
+)
+
+
+def reconstruct_config(extraction: OptionValues, matching: OptionValues, camera: OptionValues, mapping: OptionValues,
+                       *, pairs: PairsConfig, conf: str | None = None) -> ReconstructConfig:
+    """The ReconstructConfig of the option groups of `reconstruct` and `bench sfm`, the --conf preset ``conf``
+    applied to the options left at their defaults."""
+    from sekd_sfm.sfm.reconstruct import DEFAULT_RESIZE_MAX, ReconstructConfig
+
+    features, matcher = feature_and_match_configs(extraction, matching, conf)
+    features.resize_max = features.resize_max or DEFAULT_RESIZE_MAX  # see RECONSTRUCT_RESIZE_HELP
+    config = ReconstructConfig(features=features, pairs=pairs, matching=matcher, camera=camera_config(camera),
+                               mapper_type=mapping["mapper_type"], mapper=list(mapping["mapper"]),
+                               verification=list(mapping.get("verification", ())), seed=mapping["seed"])
+    config.refine.enabled = mapping["refine"]
+    if conf:  # hloc-style names, so the files of several presets coexist in OUTPUT
+        config.file_names = output_names(conf, "pairs")
+    return config
+
+
+def run_settings(execution: OptionValues, num_threads: int | None) -> RunSettings:
+    """The RunSettings of the group ``execution`` and --num-threads."""
+    from sekd_sfm.sfm.reconstruct import RunSettings
+
+    return RunSettings(overwrite=execution["overwrite"], num_threads=num_threads,
+                       progress=not execution["no_progress"], executor=execution["executor"],
+                       ray_options=ray_options(execution))
+
 
 @click.command()
 @click.argument("images", type=click.Path(file_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output folder: features.h5, pairs.txt, matches.h5, database.db, model/, stats.json, colmap.log.")
 @conf_option
-@feature_options
-@max_pixels_option
-@weights_option
-@runtime_options
-@pairs_options
-@match_options
+@extraction_options(resize_help=RECONSTRUCT_RESIZE_HELP)
+@num_threads_option
+@pairing_options
+@matching_options
 @camera_options
-@mapper_type_option
-@mapper_option
-@refine_option
-@click.option("--verification", multiple=True, metavar="KEY=VALUE", callback=_print_option_help,
-              help="Set an option of pycolmap's TwoViewGeometryOptions, e.g. ransac.max_error=2 "
-                   "(repeatable; `--verification help` lists them).")
-@seed_option
+@mapping_options()
 @adapt_option
 @click.option("--features", "features_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Use this existing feature file (sekd's or hloc's) instead of extracting; read in place.")
 @click.option("--matches", "matches_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Use this existing match file instead of pairing and matching (needs --features); its pairs "
                    "are those of --pairs-file when given, else all it holds.")
-@click.option("--overwrite", is_flag=True, help="Recompute features and matches instead of reusing them.")
-@click.option("--no-progress", is_flag=True, help="No progress bars.")
-@executor_options
-def reconstruct(images, output, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel,
-                max_pixels, weights, num_threads, device, precision, pairs_mode, pairs_file, window, loop_every, match_mode, ratio,
-                rootsift, camera_model, camera_mode, camera_params, principal_point, mapper_type, mapper, refine, verification, seed,
-                features_file, matches_file, overwrite, no_progress, executor, ray_options) -> None:
+@execution_options
+def reconstruct(images: Path, output: Path, extraction: OptionValues, num_threads: int | None, pairing: OptionValues,
+                matching: OptionValues, camera: OptionValues, mapping: OptionValues, features_file: Path | None,
+                matches_file: Path | None, execution: OptionValues) -> None:
     """Reconstruct cameras and 3D points from the images below IMAGES (COLMAP SfM through pycolmap).
 
     \b
@@ -141,46 +205,25 @@ def reconstruct(images, output, feature, max_keypoints, threshold, nms_radius, r
       sekd reconstruct photos/ -o out/ --feature sift --camera-mode single --mapper mapper.init_min_tri_angle=8
       sekd reconstruct photos/ -o out/ --features hloc/feats.h5 --matches hloc/matches.h5 --pairs-file hloc/pairs.txt
     """
-    from sekd_sfm.sfm.database import CameraConfig
-    from sekd_sfm.sfm.reconstruct import DEFAULT_RESIZE_MAX, ReconstructConfig, ReconstructionError
+    from sekd_sfm.sfm.reconstruct import ReconstructionError
     from sekd_sfm.sfm.reconstruct import reconstruct as run
+
+    config = reconstruct_config(extraction, matching, camera, mapping, pairs=pairs_config(**pairing.values),
+                                conf=current_conf())
+    settings = run_settings(execution, num_threads)
+    adapt_in_line(images, output, config.features, settings.num_threads, settings.progress)  # --adapt: new weights
+    try:
+        run(images, output, config, features=features_file, matches=matches_file, **settings.keywords())
+    except ReconstructionError:
+        _echo_summary(output)
+        raise
+    _echo_summary(output)
+
+
+def _echo_summary(output: Path) -> None:
+    """Print the run's summary from OUTPUT/stats.json (written on success and on a failure to explain)."""
     from sekd_sfm.sfm.report import format_summary
 
-    features_config, matching = configs_from_context()
-    features_config.resize_max = features_config.resize_max or DEFAULT_RESIZE_MAX
-    adapt_in_line(images, output, features_config, num_threads, not no_progress)  # --adapt: weights = adapted model
-    config = ReconstructConfig(
-        features=features_config,
-        pairs=pairs_config(pairs_mode, pairs_file, window, loop_every),
-        matching=matching,
-        camera=CameraConfig(model=camera_model, mode=camera_mode, params=camera_params,
-                            principal_point=principal_point),
-        mapper_type=mapper_type, mapper=list(mapper), verification=list(verification), seed=seed)
-    config.refine.enabled = refine
-    if current_conf():  # hloc-style names, so the files of several presets coexist in OUTPUT
-        config.file_names = output_names(current_conf(), "pairs")
-    try:
-        run(images, output, config, overwrite=overwrite, num_threads=num_threads, progress=not no_progress,
-            features=features_file, matches=matches_file, executor=executor, ray_options=ray_options)
-    except ReconstructionError:
-        _echo_summary(output, format_summary)
-        raise
-    _echo_summary(output, format_summary)
-
-
-def _set_resize_help(command: click.Command) -> None:
-    """Reconstruction's own default and help for the shared --resize-max option."""
-    for param in command.params:
-        if param.name == "resize_max":
-            param.help = ("Downscale images so the long side is at most N px (keypoints are mapped back to original "
-                          "pixels). Default 1600, as hloc: full-size photos cost far more to extract for little "
-                          "gain in pose accuracy; give e.g. 100000 for full size.")
-
-
-_set_resize_help(reconstruct)
-
-
-def _echo_summary(output: Path, format_summary) -> None:
     stats = output / "stats.json"
     if stats.is_file():
         click.echo(format_summary(json.loads(stats.read_text())))
@@ -190,10 +233,9 @@ def _echo_summary(output: Path, format_summary) -> None:
 @click.argument("image0", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("image1", type=click.Path(dir_okay=False, path_type=Path))
 @conf_option
-@feature_options
-@weights_option
-@runtime_options
-@match_options
+@extraction_options(max_pixels=False)
+@num_threads_option
+@matching_options
 @click.option("--camera-model", default="SIMPLE_PINHOLE", show_default=True,
               help="COLMAP camera model of --camera-params.")
 @click.option("--camera-params", default=None,
@@ -204,9 +246,8 @@ def _echo_summary(output: Path, format_summary) -> None:
 @click.option("--seed", type=int, default=0, show_default=True, help="RANSAC random seed.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write the JSON to this file.")
-def relpose(image0, image1, feature, max_keypoints, threshold, nms_radius, resize_max, multi_scale, subpixel, weights,
-            num_threads, device, precision, match_mode, ratio, rootsift, camera_model, camera_params, max_error, seed,
-            output) -> None:
+def relpose(image0: Path, image1: Path, extraction: OptionValues, num_threads: int | None, matching: OptionValues,
+            camera_model: str, camera_params: str | None, max_error: float, seed: int, output: Path | None) -> None:
     """Relative pose of IMAGE1 with respect to IMAGE0, printed as JSON.
 
     \b
@@ -221,11 +262,9 @@ def relpose(image0, image1, feature, max_keypoints, threshold, nms_radius, resiz
     from sekd_sfm.sfm.relpose import RelposeConfig, relative_pose
 
     set_num_threads(num_threads)
-    features_config, matching = configs_from_context()
-    config = RelposeConfig(
-        features=features_config,
-        matching=matching,
-        camera_model=camera_model, camera_params=camera_params, max_error=max_error, seed=seed)
+    features, matcher = feature_and_match_configs(extraction, matching, current_conf())
+    config = RelposeConfig(features=features, matching=matcher, camera_model=camera_model, camera_params=camera_params,
+                           max_error=max_error, seed=seed)
     text = json.dumps(relative_pose(image0, image1, config), indent=2)
     if output:
         output.write_text(text + "\n")

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import SekdError
 from ..files.images import IMAGE_EXTENSIONS
+from .strecha import read_cameras
 
 
 @dataclass
@@ -72,8 +73,6 @@ class PoseScene:
 
 
 def _strecha_scene(folder: Path) -> PoseScene:
-    from ..bench.strecha import read_cameras
-
     cameras = {name: (c.K, *c.cam_from_world) for name, c in read_cameras(folder / "gt_dense_cameras").items()}
     images = folder / "images" if (folder / "images").is_dir() else folder
     return PoseScene(folder.name, images, cameras)

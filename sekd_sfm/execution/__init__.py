@@ -1,1 +1,115 @@
-"""execution"""
+"""Where a stage runs: in this process (``local``) or on a Ray cluster (``ray``), writing the same files.
+
+An executor runs a :class:`~sekd_sfm.execution.stage.Stage` (a worker class, its arguments, the
+batches of keys) and owns everything around the computation: the part store, progress, Ctrl-C
+and resume, the merge into the output file. It knows nothing about features or matches; the
+stages (``sekd_sfm.extract``, ``sekd_sfm.match``) know nothing about Ray. Imports run one way:
+stages -> execution -> files.
+
+    with open_executor("ray", RayOptions(threads_per_worker=2)) as executor:
+        executor.run(stage, parts, on_error, attrs=lambda: {"failed_images": "[]"})
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Protocol
+
+from ..files import partstore
+from .local import run_local
+from .ray_connect import (
+    EXECUTORS,
+    MERGES,
+    RAY_INSTALL,
+    RayOptions,
+    _connect,
+    address_variable,
+    check_executor,
+    driver_merges_while_running,
+    session,
+)
+from .ray_pool import task_size
+from .stage import OnError, Result, Stage, Worker
+
+logger = logging.getLogger("sekd")
+Attrs = Callable[[], "dict | None"]
+
+
+class Executor(Protocol):
+    """Runs stages; a context manager (a Ray executor holds its connection for every stage run inside it)."""
+
+    def __enter__(self) -> Executor: ...
+
+    def __exit__(self, *exc) -> None: ...
+
+    def run(self, stage: Stage, parts: partstore.PartStore, on_error: OnError, *, progress: bool = True,
+            attrs: Attrs | None = None) -> int: ...
+
+
+class LocalExecutor:
+    """Runs a stage in this process."""
+
+    def __enter__(self) -> LocalExecutor:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+    def run(self, stage: Stage, parts: partstore.PartStore, on_error: OnError, *, progress: bool = True,
+            attrs: Attrs | None = None) -> int:
+        """Compute the stage into ``parts``, then merge them into ``stage.output`` with ``attrs()``; returns the
+        items merged."""
+        run_local(stage, parts, on_error, progress=progress)
+        return _finish(stage, parts, attrs)
+
+
+class RayExecutor:
+    """Runs stages on a Ray cluster; connects at the first stage with work (not for a run with nothing to do)
+    and, if it connected (or started a local cluster), disconnects when the block ends."""
+
+    def __init__(self, options: RayOptions | None = None):
+        self.options = options or RayOptions()
+        self.ray, self.owned = None, False
+
+    def __enter__(self) -> RayExecutor:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.owned:
+            self.ray.shutdown()
+        self.ray, self.owned = None, False
+
+    def run(self, stage: Stage, parts: partstore.PartStore, on_error: OnError, *, progress: bool = True,
+            attrs: Attrs | None = None) -> int:
+        """As ``LocalExecutor.run``, the computation on the cluster; the driver may copy results into the output as
+        they arrive (``driver_merges_while_running``)."""
+        from .ray_run import run_on_ray  # Ray's imports only for a run on Ray
+
+        merge = None
+        try:
+            if stage.batches:
+                if self.ray is None:
+                    self.ray, self.owned = _connect(self.options)
+                if driver_merges_while_running(self.options):
+                    merge = partstore.Merge(stage.output, parts, stage.write_group)  # fed as chunks arrive
+                    logger.info("Ray: the driver copies the workers' results into the output as they arrive")
+                run_on_ray(self.ray, stage, parts, on_error, options=self.options, progress=progress, merge=merge)
+            return _finish(stage, parts, attrs, merge)
+        finally:
+            if merge is not None:
+                merge.discard()  # after a failure: the file as it was, the chunks for the next run
+
+
+def open_executor(name: str, options: RayOptions | None = None) -> LocalExecutor | RayExecutor:
+    """The executor called ``name`` (``local`` or ``ray``); checks the name and, for Ray, that a cluster answers."""
+    check_executor(name, options)
+    return RayExecutor(options) if name == "ray" else LocalExecutor()
+
+
+def _finish(stage: Stage, parts: partstore.PartStore, attrs: Attrs | None, merge: partstore.Merge | None = None) -> int:
+    parts.flush()  # on disk before the merge: a merge that fails or is killed loses nothing
+    return partstore.finish_run(stage.output, parts, attrs() if attrs else None, stage.write_group, stage.items, merge)
+
+
+__all__ = ["EXECUTORS", "MERGES", "RAY_INSTALL", "Executor", "LocalExecutor", "OnError", "RayExecutor", "RayOptions",
+           "Result", "Stage", "Worker", "address_variable", "check_executor", "open_executor", "session", "task_size"]

@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 from ..errors import SekdError
 from ..files.images import DEFAULT_MAX_PIXELS
 from ..model.inference import SEKDConfig, SEKDExtractor
-from ..runtime import resolve_device
 from ..model.weights import ModelInfo, file_sha256, load_model
+from ..runtime import resolve_device
 from .classic import CLASSIC_FEATURES, OpenCVExtractor
 from .peers import PEER_FEATURES, KorniaPeer
 

@@ -5,7 +5,7 @@ through ``atomic_output``: the data is written under ``<name>.<pid>.tmp`` beside
 flushed to disk, then renamed over the target, so a reader (or a rerun after a crash, a
 full disk or kill -9) sees either the old file or the new one, never a torn one. The PID in
 the name keeps two processes from writing the same temporary file, and lets
-``featurefile.remove_stale_temps`` tell a dead writer's leftovers from a live one's.
+``partstore.remove_stale_temps`` tell a dead writer's leftovers from a live one's.
 """
 from __future__ import annotations
 

@@ -55,3 +55,27 @@ def exclusive_lock(target: str | Path, what: str = "output") -> Iterator[Path]:
         yield path
     finally:
         os.close(fd)  # closing the descriptor releases the lock
+
+
+@contextlib.contextmanager
+def writer_lock(path: Path, what: str) -> Iterator[None]:
+    """Hold the exclusive lock of output ``path`` for the block: one writer per file.
+
+    SekdError naming the other process's PID if it is taken, or if the lock file cannot
+    be created (the output's folder is a file, is read-only, ...).
+    """
+    if path.is_dir():  # refused before a lock file is put into the user's folder
+        raise SekdError(f"{path}: is a folder, not a {what}; give the name of a file to write (e.g. {path / 'out.h5'})")
+    with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(exclusive_lock(path, what=what))
+        except OSError as exc:
+            blocker = next((parent for parent in path.parents if parent.exists()), None)
+            if blocker is not None and not blocker.is_dir():
+                raise SekdError(f"{path}: cannot be written: {blocker} is a file, not a folder; "
+                                "choose another output") from exc
+            raise SekdError(f"{path}: cannot create its lock file ({exc.strerror or exc}); "
+                            "choose an output in a writable folder") from exc
+        yield
+
+

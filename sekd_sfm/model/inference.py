@@ -14,9 +14,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..runtime import resolve_device, resolve_precision, tune_allocator
 from .fused import fused_or_none
 from .network import STRIDE, SEKDNet, use_fast_deconv
-from ..runtime import resolve_device, resolve_precision, tune_allocator
 
 _DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
 #: Multi-scale pyramid levels stop when a side would be this small or smaller (authors' rule).

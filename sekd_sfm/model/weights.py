@@ -15,9 +15,9 @@ from torch import nn
 
 from ..errors import SekdError
 from ..files.atomic import atomic_output
-from .network import SEKDNet
 from .lite import ARCHITECTURE as LITE_ARCHITECTURE
 from .lite import SEKDLiteNet, build_lite
+from .network import SEKDNet
 
 #: The ``architecture`` of the full network; checkpoints without an architecture entry
 #: (the authors' release, older runs of this project) are full-network checkpoints.

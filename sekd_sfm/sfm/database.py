@@ -14,9 +14,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from ..errors import SekdError
 from ..files import features as ff
 from ..files import matches as mf
-from ..errors import SekdError
 from ..pairs import Pair
 from .colmap import open_database, require_pycolmap, set_options
 

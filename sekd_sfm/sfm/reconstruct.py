@@ -21,15 +21,17 @@ import json
 import logging
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
-from ..execution import raycluster as cluster
-from ..files import features as ff
-from ..files import matches as mf
+from .. import execution
 from ..errors import SekdError
+from ..execution import RayOptions
 from ..extract import extract_features
 from ..features import FeatureConfig
+from ..files import features as ff
+from ..files import matches as mf
 from ..files.images import list_images
 from ..files.locking import exclusive_lock
 from ..match import MatchConfig, match_features
@@ -104,6 +106,24 @@ class ReconstructConfig:
     file_names: tuple[str, str] = ("features.h5", "matches.h5")
 
 
+@dataclass(frozen=True)
+class RunSettings:
+    """How a reconstruction runs, as opposed to what it computes (ReconstructConfig, recorded in stats.json)."""
+
+    #: Recompute features and matches instead of reusing the files an earlier run left in the output folder.
+    overwrite: bool = False
+    #: CPU threads of extraction, matching and geometric verification (None: every core the process may use).
+    num_threads: int | None = None
+    progress: bool = True
+    #: Where extraction and matching run: ``local`` (this machine) or ``ray`` (the cluster of ``ray_options``).
+    executor: str = "local"
+    ray_options: RayOptions | None = None
+
+    def keywords(self) -> dict[str, Any]:
+        """These settings as keyword arguments of ``reconstruct``: ``reconstruct(..., **settings.keywords())``."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
 class _Timer:
     def __init__(self):
         self.seconds: dict[str, float] = {}
@@ -126,7 +146,7 @@ def _config_dict(config: ReconstructConfig) -> dict:
 def reconstruct(image_dir: str | Path, output_dir: str | Path, config: ReconstructConfig | None = None, *,
                 overwrite: bool = False, num_threads: int | None = None, progress: bool = True,
                 features: str | Path | None = None, matches: str | Path | None = None, executor: str = "local",
-                ray_options=None) -> Path:
+                ray_options: RayOptions | None = None) -> Path:
     """Reconstruct the images below ``image_dir`` into ``output_dir``; returns the main model's folder.
 
     Runs the missing stages (extract, pairs, match) and reuses existing outputs made with
@@ -135,24 +155,25 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
     those of ``config.pairs.file`` when set, else all the pairs it holds. Both are read in
     place, never modified. When the images split into several models each is written
     (``model/`` the largest, ``models/1``, ...) and the split is logged as a warning.
+    ``executor`` / ``ray_options``: where extraction and matching run (``sekd_sfm.execution``);
+    the keyword arguments from ``overwrite`` on are the fields of RunSettings.
     Raises ReconstructionError, after writing stats.json and keeping the database, when no
     model comes out; SekdError when another process is using ``output_dir``.
     """
     require_pycolmap()
     config = config or ReconstructConfig()
+    settings = RunSettings(overwrite=overwrite, num_threads=num_threads, progress=progress, executor=executor,
+                           ray_options=ray_options)
     image_dir, out = Path(image_dir), Path(output_dir)
     _check_inputs(image_dir, features, matches)
     out.mkdir(parents=True, exist_ok=True)
     with exclusive_lock(out, what="reconstruction folder"):
         clean_scratch(out)  # left by a killed run: nobody else can be using them while we hold the lock
         clean_logs(out / "colmap.log")
-        # executor / ray_options: where extraction and matching run (sekd_sfm.execution.raycluster).
-        stages = {"overwrite": overwrite, "num_threads": num_threads, "progress": progress, "executor": executor,
-                  "ray_options": ray_options}
-        return _locked(image_dir, out, config, stages, features, matches)
+        return _locked(image_dir, out, config, settings, features, matches)
 
 
-def _check_inputs(image_dir: Path, features, matches) -> None:
+def _check_inputs(image_dir: Path, features: str | Path | None, matches: str | Path | None) -> None:
     if not image_dir.is_dir():
         raise SekdError(f"{image_dir}: not a folder of images; give the folder holding the photos")
     if matches is not None and features is None:
@@ -162,13 +183,15 @@ def _check_inputs(image_dir: Path, features, matches) -> None:
             raise SekdError(f"{what} {path}: no such file; give an existing HDF5 file or leave {what} out")
 
 
-def _locked(image_dir, out, config, stages: dict, features, matches) -> Path:
+def _locked(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSettings,
+            features: str | Path | None, matches: str | Path | None) -> Path:
+    """The run, inside the folder's lock; stats.json records how it ended, success or a failure to explain."""
     timer, stats = _Timer(), {"status": "running", "failure": None, "config": _config_dict(config),
                               "versions": package_versions(), "images_dir": str(image_dir),
                               "inputs": {"features": str(features) if features else None,
                                          "matches": str(matches) if matches else None}}
     try:
-        model = _run(image_dir, out, config, timer, stats, stages, features, matches)
+        model = _run(image_dir, out, config, settings, timer, stats, features, matches)
         stats["status"] = "ok"
         return model
     except ReconstructionError as exc:
@@ -181,22 +204,17 @@ def _locked(image_dir, out, config, stages: dict, features, matches) -> Path:
             write_json(stats, out / "stats.json")
 
 
-def _run(image_dir, out, config, timer, stats, stages: dict, features, matches) -> Path:
+def _run(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSettings, timer: _Timer, stats: dict,
+         features: str | Path | None, matches: str | Path | None) -> Path:
     # Options are checked first, so a typo fails in a second, not after extraction and matching.
-    count = _num_photos(image_dir, features) if config.mapper_type == "auto" else 0  # only auto looks at the size
-    mapper_type = resolve_mapper_type(config.mapper_type, count)
-    stats["mapper_type"] = mapper_type
-    options = mapper_options(config.mapper, config.seed, mapper_type)
-    two_view = two_view_options(config.verification, config.seed)
-    parse_camera_params(config.camera.model, config.camera.params)
-    check_principal_point_mode(config.camera.principal_point)
-    features, pairs_file, matches = _inputs(image_dir, out, config, timer, stats, stages, features, matches)
-    num_threads, progress = stages["num_threads"], stages["progress"]
+    options, two_view = _checked_options(image_dir, config, features, stats)
+    features, pairs_file, matches = _inputs(image_dir, out, config, settings, timer, features, matches)
+    stats["matching"] = _matching_config(matches)
     pairs, keypoints = read_pairs(pairs_file), features
     if config.refine.enabled:
         with timer("refine"):
             keypoints = refine_keypoints(features, matches, pairs, image_dir, out / refined_name(config.file_names[0]),
-                                         config.refine, progress=progress)
+                                         config.refine, progress=settings.progress)
         stats["refine"] = refine_summary(keypoints)
     database = out / "database.db"
     with colmap_log(out / "colmap.log") as log:
@@ -204,13 +222,27 @@ def _run(image_dir, out, config, timer, stats, stages: dict, features, matches) 
             create_database(image_dir, keypoints, matches, pairs, database, config.camera)
         stats["principal_point"] = _principal_point(config, database, options)
         with timer("verification"):
-            verify_matches(database, two_view, num_threads or -1)
+            verify_matches(database, two_view, settings.num_threads or -1)
         match_stats = match_statistics(database, min_num_matches(options))
         stats["matches"] = summarize_matches(match_stats)
         check_enough_matches(match_stats, database)
         with timer("mapping"):
-            models = run_mapper(database, image_dir, options, progress, log_prefix=log_prefix(log))
+            models = run_mapper(database, image_dir, options, settings.progress, log_prefix=log_prefix(log))
     return _finish(models, match_stats, options, out, stats, database)
+
+
+def _checked_options(image_dir: Path, config: ReconstructConfig, features: str | Path | None,
+                     stats: dict) -> tuple[Any, Any]:
+    """pycolmap's mapper and two-view geometry options of ``config``, after checking every option of the run
+    (the mapper type resolved for the collection's size, recorded in ``stats``)."""
+    count = _num_photos(image_dir, features) if config.mapper_type == "auto" else 0  # only auto looks at the size
+    mapper_type = resolve_mapper_type(config.mapper_type, count)
+    stats["mapper_type"] = mapper_type
+    options = mapper_options(config.mapper, config.seed, mapper_type)
+    two_view = two_view_options(config.verification, config.seed)
+    parse_camera_params(config.camera.model, config.camera.params)
+    check_principal_point_mode(config.camera.principal_point)
+    return options, two_view
 
 
 def _principal_point(config: ReconstructConfig, database: Path, options) -> str:
@@ -227,7 +259,7 @@ def _principal_point(config: ReconstructConfig, database: Path, options) -> str:
     return "refined" if refine else "fixed"
 
 
-def _num_photos(image_dir: Path, features) -> int:
+def _num_photos(image_dir: Path, features: str | Path | None) -> int:
     """The photos to map: the feature file's images when given, else those below ``image_dir`` (0 if none:
     extraction then says so, after the options are checked)."""
     try:
@@ -242,35 +274,40 @@ def refined_name(features_name: str) -> str:
     return f"{path.stem}-refined{path.suffix or '.h5'}"
 
 
-def _inputs(image_dir, out, config, timer, stats, stages: dict, features, matches):
-    """features, pairs file and matches: the caller's files where given, else made (or reused) in ``out``."""
-    with cluster.session(stages["executor"], stages["ray_options"]):  # one Ray connection for extract and match
-        return _extract_pair_match(image_dir, out, config, timer, stats, stages, features, matches)
+def _inputs(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSettings, timer: _Timer,
+            features: str | Path | None, matches: str | Path | None) -> tuple[Path, Path, Path]:
+    """Features, pairs file and matches: the caller's files where given, else made (or reused) in ``out``.
 
-
-def _extract_pair_match(image_dir, out, config, timer, stats, stages: dict, features, matches):
-    overwrite, num_threads, progress = stages["overwrite"], stages["num_threads"], stages["progress"]
-    executor, ray_options = stages["executor"], stages["ray_options"]
-    with timer("extract"):
-        if features is None:
-            features = extract_features(image_dir, out / config.file_names[0], config.features, overwrite=overwrite,
-                                        num_threads=num_threads, progress=progress, executor=executor,
-                                        ray_options=ray_options)
-        else:
-            ff.read_attrs(Path(features))  # sekd or hloc, else one clear error
-    with timer("pairs"):
-        if matches is None:
-            pairs_file = make_pairs(features, out / "pairs.txt", config.pairs, progress=progress)
-        else:
-            pairs = read_pairs(config.pairs.file) if config.pairs.file else _stored_pairs(Path(matches))
-            pairs_file = write_pairs(pairs, out / "pairs.txt")  # the record of what was imported
-    with timer("match"):
-        if matches is None:
-            matches = match_features(features, pairs_file, out / config.file_names[1], config.matching,
-                                     overwrite=overwrite, num_threads=num_threads, progress=progress,
-                                     executor=executor, ray_options=ray_options)
-    stats["matching"] = _matching_config(Path(matches))
+    Extraction and matching run where ``settings.executor`` says, in one session: a Ray cluster is
+    connected to (or a local one started) once for both stages, not once per stage.
+    """
+    with execution.session(settings.executor, settings.ray_options):
+        with timer("extract"):
+            if features is None:
+                features = extract_features(image_dir, out / config.file_names[0], config.features,
+                                            overwrite=settings.overwrite, num_threads=settings.num_threads,
+                                            progress=settings.progress, executor=settings.executor,
+                                            ray_options=settings.ray_options)
+            else:
+                ff.read_attrs(Path(features))  # sekd or hloc, else one clear error
+        with timer("pairs"):
+            pairs_file = _pairs_file(out, config.pairs, features, matches, settings.progress)
+        with timer("match"):
+            if matches is None:
+                matches = match_features(features, pairs_file, out / config.file_names[1], config.matching,
+                                         overwrite=settings.overwrite, num_threads=settings.num_threads,
+                                         progress=settings.progress, executor=settings.executor,
+                                         ray_options=settings.ray_options)
     return Path(features), pairs_file, Path(matches)
+
+
+def _pairs_file(out: Path, config: PairsConfig, features: str | Path, matches: str | Path | None,
+                progress: bool) -> Path:
+    """``out``/pairs.txt: the pairs chosen among the features' images, or those of the caller's matches."""
+    if matches is None:
+        return make_pairs(features, out / "pairs.txt", config, progress=progress)
+    pairs = read_pairs(config.file) if config.file else _stored_pairs(Path(matches))
+    return write_pairs(pairs, out / "pairs.txt")  # the record of what was imported
 
 
 def _stored_pairs(matches: Path) -> list:

@@ -36,9 +36,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from ..errors import SekdError
 from ..files import features as ff
 from ..files import matches as mf
-from ..errors import SekdError
 from ..files.atomic import atomic_output
 from ..files.images import ImageReadError, load_scaled, to_resized_pixels
 from ..runtime import package_versions

@@ -8,16 +8,15 @@ location in the warped view. Every random draw comes from :func:`rng_for`, seede
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
-import kornia
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from ..errors import SekdError
+from ..evaluation import samplers
 from ..files.images import ImageReadError, list_images, read_image, resize_max_side
 from .config import TrainConfig
 
@@ -68,44 +67,12 @@ class TrainImages:
         return np.ascontiguousarray(image[:h, :w])
 
 
-# --- colour jitter (torchvision ColorJitter semantics on 8-bit images) ------------------------
-
-def _gray_u8(rgb: torch.Tensor) -> torch.Tensor:
-    """torchvision's uint8 grayscale (truncated), ``3 x H x W`` -> ``1 x H x W``."""
-    return (0.2989 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]).floor()[None]
-
-
-def _blend(a: torch.Tensor, b: torch.Tensor, ratio: float) -> torch.Tensor:
-    # Truncation after every op mirrors torchvision on uint8 tensors.
-    return (ratio * a + (1.0 - ratio) * b).clamp(0, 255).floor()
-
-
-def _hue(rgb: torch.Tensor, shift: float) -> torch.Tensor:
-    hsv = kornia.color.rgb_to_hsv(rgb[None] / 255.0)[0]
-    hsv[0] = torch.remainder(hsv[0] / (2 * math.pi) + shift, 1.0) * (2 * math.pi)
-    return (kornia.color.hsv_to_rgb(hsv[None])[0] * 255.0).clamp(0, 255).floor()
-
+# --- colour jitter (torchvision ColorJitter semantics on 8-bit images; evaluation/samplers.py) -------
 
 def color_jitter(rgb: torch.Tensor, rng: np.random.Generator, cfg: TrainConfig) -> torch.Tensor:
-    """Brightness, contrast, saturation, hue in a random order. ``3 x H x W`` float holding 0..255 integers."""
-    order = rng.permutation(4)
-    b, c, s = (rng.uniform(*r) for r in (cfg.brightness, cfg.contrast, cfg.saturation))
-    h = rng.uniform(*cfg.hue)
-    # torchvision drops an op whose range is the identity; so do we (hue 0 would still round).
-    identity = [list(cfg.brightness) == [1, 1], list(cfg.contrast) == [1, 1], list(cfg.saturation) == [1, 1],
-                list(cfg.hue) == [0, 0]]
-    for op in order:
-        if identity[op]:
-            continue
-        if op == 0:
-            rgb = _blend(rgb, torch.zeros_like(rgb), b)
-        elif op == 1:
-            rgb = _blend(rgb, _gray_u8(rgb).mean(), c)
-        elif op == 2:
-            rgb = _blend(rgb, _gray_u8(rgb), s)
-        else:
-            rgb = _hue(rgb, h)
-    return rgb
+    """Brightness, contrast, saturation, hue in a random order (``samplers.color_jitter`` with the run's
+    ranges). ``3 x H x W`` float holding 0..255 integers."""
+    return samplers.color_jitter(rgb, rng, cfg.brightness, cfg.contrast, cfg.saturation, cfg.hue)
 
 
 def to_gray(rgb: torch.Tensor) -> torch.Tensor:
@@ -113,15 +80,12 @@ def to_gray(rgb: torch.Tensor) -> torch.Tensor:
     return ((0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]) / 255.0)[None]
 
 
-# --- affine warps --------------------------------------------------------------------------
+# --- affine warps (drawn by evaluation/samplers.py with this run's ranges) ----------------------
 
 def random_affine(rng: np.random.Generator, cfg: TrainConfig) -> np.ndarray:
-    """theta = [[sx cos a, -sy sin(a+s), tx], [sx sin a, sy cos(a+s), ty]] (normalised coordinates)."""
-    a, s = np.deg2rad(rng.uniform(*cfg.rotation_deg)), np.deg2rad(rng.uniform(*cfg.shear_deg))
-    sx = rng.uniform(*cfg.scale)
-    sy = sx if cfg.isotropic_scale else rng.uniform(*cfg.scale)
-    tx, ty = rng.uniform(*cfg.translation), rng.uniform(*cfg.translation)
-    return np.array([[sx * np.cos(a), -sy * np.sin(a + s), tx], [sx * np.sin(a), sy * np.cos(a + s), ty]])
+    """theta = [[sx cos a, -sy sin(a+s), tx], [sx sin a, sy cos(a+s), ty]] (normalised coordinates;
+    ``samplers.random_affine`` with the run's ranges)."""
+    return samplers.random_affine(rng, cfg.rotation_deg, cfg.shear_deg, cfg.scale, cfg.translation, cfg.isotropic_scale)
 
 
 def random_warp(rng: np.random.Generator, cfg: TrainConfig) -> np.ndarray:
@@ -131,13 +95,10 @@ def random_warp(rng: np.random.Generator, cfg: TrainConfig) -> np.ndarray:
     ``[[A], [g, h, 1]]`` with ``g, h`` uniform in ``[-p, p]`` (normalised coordinates): across
     the view the local scale then changes by up to ``(1 + 2p) / (1 - 2p)``, a viewpoint change the
     affine warps of the specification do not make. ``p = 0`` draws nothing more, so runs without
-    it are unchanged.
+    it are unchanged (``samplers.random_warp``).
     """
-    theta = random_affine(rng, cfg)
-    if cfg.perspective <= 0:
-        return theta
-    g, h = rng.uniform(-cfg.perspective, cfg.perspective, 2)
-    return np.vstack([theta, [g, h, 1.0]])
+    return samplers.random_warp(rng, cfg.rotation_deg, cfg.shear_deg, cfg.scale, cfg.translation,
+                                cfg.isotropic_scale, cfg.perspective)
 
 
 def invert_affine(theta: np.ndarray) -> np.ndarray:

@@ -46,13 +46,13 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..errors import SekdError
+from ..evaluation.samplers import jitter_gray, random_view_change, random_window_homography
 from ..files.atomic import atomic_output, write_atomic
+from ..files.locking import exclusive_lock
 from ..model.fused import fp32_eval_forward
 from ..model.inference import nms_keypoints, sample_descriptors
-from ..files.locking import exclusive_lock
-from ..model.network import SEKDNet, use_fast_deconv
 from ..model.lite import DEFAULT_CONFIG, SEKDLiteNet, build_lite
-from ..runtime import allocator_tuned, set_num_threads, shared_dir
+from ..model.network import SEKDNet, use_fast_deconv
 from ..model.weights import (
     DEFAULT_MODEL,
     FULL_ARCHITECTURE,
@@ -62,6 +62,7 @@ from ..model.weights import (
     load_model,
     save_checkpoint,
 )
+from ..runtime import allocator_tuned, set_num_threads, shared_dir
 from .config import CHOICES
 from .data import TrainImages
 from .losses import triplet_loss
@@ -151,56 +152,12 @@ def split_photos(count: int, val_photos: int) -> tuple[list[int], list[int]]:
     return list(range(count - val)), list(range(count - val, count))
 
 
-def _warped_window(rng: np.random.Generator, centre: tuple[float, float], size_hw: tuple[float, float],
-                   perspective: float, rotation_deg: float) -> np.ndarray:
-    """4 x 2 corners (x, y) of a ``size_hw`` window around ``centre``, each corner moved up to
-    ``perspective`` x the window size, then rotated by up to ``rotation_deg``."""
-    (wh, ww), (cx, cy) = size_hw, centre
-    corners = np.array([[-ww / 2, -wh / 2], [ww / 2, -wh / 2], [ww / 2, wh / 2], [-ww / 2, wh / 2]])
-    corners += rng.uniform(-perspective, perspective, (4, 2)) * [ww, wh]
-    a = np.deg2rad(rng.uniform(-rotation_deg, rotation_deg))
-    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    return corners @ rot.T + [cx, cy]
-
-
-def _from_crop(crop_hw: tuple[int, int], target: np.ndarray) -> np.ndarray:
-    """3x3 map from the corners of a ``crop_hw`` crop to the 4 x 2 ``target`` corners."""
-    ch, cw = crop_hw
-    source = np.array([[0, 0], [cw - 1, 0], [cw - 1, ch - 1], [0, ch - 1]], dtype=np.float32)
-    return cv2.getPerspectiveTransform(source, target.astype(np.float32))
-
-
-def random_homography(rng: np.random.Generator, image_hw: tuple[int, int], crop_hw: tuple[int, int],
-                      config: DistillConfig) -> np.ndarray:
-    """3x3 map from crop pixels to image pixels: a random window at a random scale, rotated and perspective-distorted."""
-    (h, w), (ch, cw) = image_hw, crop_hw
-    scale = rng.uniform(*config.scale_range)
-    # Window size in image pixels (a crop pixel covers 1/scale image pixels), never larger than the image.
-    wh, ww = min(h, ch / scale), min(w, cw / scale)
-    cy, cx = rng.uniform(wh / 2, h - wh / 2), rng.uniform(ww / 2, w - ww / 2)
-    return _from_crop(crop_hw, _warped_window(rng, (cx, cy), (wh, ww), config.perspective, config.rotation_deg))
-
-
-def second_view(rng: np.random.Generator, crop_hw: tuple[int, int], config: DistillConfig) -> np.ndarray:
-    """3x3 map from the second view's crop pixels to the first view's: a rotation, perspective warp and
-    scale (``pair_*`` ranges) about the crop centre, so the views overlap mostly."""
-    ch, cw = crop_hw
-    scale = rng.uniform(*config.pair_scale_range)
-    window = _warped_window(rng, ((cw - 1) / 2, (ch - 1) / 2), (ch / scale, cw / scale),
-                            config.pair_perspective, config.pair_rotation_deg)
-    return _from_crop(crop_hw, window)
-
-
-def photometric(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Gain, bias, gamma, occasional blur and noise on a float ``H x W`` image in [0, 1]."""
-    image = np.clip(image * rng.uniform(0.6, 1.4) + rng.uniform(-0.15, 0.15), 0, 1)
-    image = image ** rng.uniform(0.7, 1.4)
-    if rng.random() < 0.25:
-        image = cv2.GaussianBlur(image, (0, 0), rng.uniform(0.3, 1.2))
-    if rng.random() < 0.5:
-        image = image + rng.normal(0, rng.uniform(0.0, 0.03), image.shape)
-    # Training photos are 8-bit: round like a decoded image so teacher and student see real inputs.
-    return np.round(np.clip(image, 0, 1) * 255) / 255
+def _random_window(rng: np.random.Generator, image_hw: tuple[int, int], crop_hw: tuple[int, int],
+                   config: DistillConfig) -> np.ndarray:
+    """3x3 map from crop pixels to image pixels: a random window at a random scale, rotated and
+    perspective-distorted (``samplers.random_window_homography`` with the run's ranges)."""
+    return random_window_homography(rng, image_hw, crop_hw, config.scale_range, config.perspective,
+                                    config.rotation_deg)
 
 
 def _view(gray: np.ndarray, homography: np.ndarray, rng: np.random.Generator, crop_hw: tuple[int, int]) -> np.ndarray:
@@ -208,21 +165,21 @@ def _view(gray: np.ndarray, homography: np.ndarray, rng: np.random.Generator, cr
     ch, cw = crop_hw
     warped = cv2.warpPerspective(gray, homography, (cw, ch), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                  borderMode=cv2.BORDER_REFLECT_101)
-    return photometric(warped.astype(np.float64) / 255, rng).astype(np.float32)
+    return jitter_gray(warped.astype(np.float64) / 255, rng).astype(np.float32)
 
 
 def make_sample(gray: np.ndarray, rng: np.random.Generator, config: DistillConfig) -> np.ndarray:
     """One augmented ``crop_h x crop_w`` float32 view in [0, 1] of an ``H x W`` uint8 photo."""
     crop = tuple(config.crop)
-    homography = random_homography(rng, gray.shape, crop, config)
-    return _view(gray, homography, rng, crop)
+    return _view(gray, _random_window(rng, gray.shape, crop, config), rng, crop)
 
 
 def make_pair(gray: np.ndarray, rng: np.random.Generator, config: DistillConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Two augmented views of one window of ``gray`` and the 3x3 map from view-0 pixels to view-1 pixels."""
     crop = tuple(config.crop)
-    to_image = random_homography(rng, gray.shape, crop, config)
-    one_to_zero = second_view(rng, crop, config)
+    to_image = _random_window(rng, gray.shape, crop, config)
+    one_to_zero = random_view_change(rng, crop, config.pair_scale_range, config.pair_perspective,
+                                     config.pair_rotation_deg)
     view0 = _view(gray, to_image, rng, crop)
     view1 = _view(gray, to_image @ one_to_zero, rng, crop)
     return view0, view1, np.linalg.inv(one_to_zero)

@@ -26,8 +26,8 @@ import torch
 
 from ..errors import SekdError
 from ..model.network import SEKDNet, count_parameters
-from ..runtime import shared_dir
 from ..model.weights import EMBEDDED_MODELS, file_sha256, load_model
+from ..runtime import shared_dir
 from .config import TrainConfig, load_run_config, schedule_config
 from .report import finished_rounds, ranked_steps, write_atomic
 
@@ -406,7 +406,7 @@ def average_card(model: Path, meta: dict, extra: list[dict] = ()) -> str:
         *_validation_rows(None, list(extra)),
         "",
         "Benchmarks against the authors' model, the classics and the kornia peers: below, the README's",
-        "Figures section and [benchmarks.md](benchmarks.md).",
+        "Results section and [benchmarks.md](benchmarks.md).",
         "",
     ]
     return "\n".join(lines)
@@ -608,7 +608,7 @@ def model_card(run: Path, model: Path, meta: dict, extra: list[dict] = ()) -> st
         *_label_rows(run),
         "",
         "Benchmarks against the authors' model, the classics and the kornia peers: the README's",
-        "Figures section and [benchmarks.md](benchmarks.md).",
+        "Results section and [benchmarks.md](benchmarks.md).",
         "",
     ]
     return "\n".join(lines)

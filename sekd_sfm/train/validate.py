@@ -17,12 +17,12 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..errors import SekdError
 from ..evaluation import metrics
 from ..evaluation.datasets import is_sequence, read_sequence
-from ..errors import SekdError
 from ..files.images import read_image, resize_max_side, resized_to_original_matrix
-from ..model.inference import SEKDConfig, SEKDExtractor
 from ..match import match_descriptors
+from ..model.inference import SEKDConfig, SEKDExtractor
 from ..runtime import shared_dir
 from .model import plain_copy
 

@@ -36,9 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import SekdError
+from ...evaluation.metrics import pose_auc
 from ...files.atomic import write_atomic
 from ...files.locking import exclusive_lock
-from ...evaluation.metrics import pose_auc
 from .measure import Measurement, run_measured
 from .scene import SceneConfig, generate_scene, read_covisibility, read_scene
 
