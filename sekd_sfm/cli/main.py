@@ -59,7 +59,7 @@ def sekd(quiet: bool) -> None:
 
 
 def _register() -> None:
-    from . import bench, doctor, extract, match, reconstruct
+    from . import bench, doctor, export, extract, match, reconstruct
 
     sekd.add_command(extract.extract)
     sekd.add_command(doctor.doctor)
@@ -68,7 +68,7 @@ def _register() -> None:
     sekd.add_command(match.match)
     sekd.add_command(reconstruct.reconstruct)
     sekd.add_command(reconstruct.relpose)
-    sekd.add_command(reconstruct.export)
+    sekd.add_command(export.export)
     from . import presets, show
     sekd.add_command(presets.confs)
     sekd.add_command(show.show)

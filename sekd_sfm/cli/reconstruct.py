@@ -1,4 +1,4 @@
-"""``sekd reconstruct`` (images -> COLMAP model), ``sekd relpose`` (two images -> R, t) and ``sekd export``.
+"""``sekd reconstruct`` (images -> COLMAP model) and ``sekd relpose`` (two images -> R, t).
 
 The SfM commands (these and ``sekd bench sfm``) take their options in groups, each passed to the
 command as one argument (``options.option_group``): extraction, pairing, matching, camera,
@@ -14,7 +14,6 @@ from typing import TYPE_CHECKING
 import click
 
 from sekd_sfm.confs import output_names
-from sekd_sfm.errors import SekdError
 from sekd_sfm.pairs import PairsConfig
 from sekd_sfm.sfm.database import CAMERA_MODES, PRINCIPAL_POINT_MIN_IMAGES, PRINCIPAL_POINT_MODES, CameraConfig
 
@@ -269,30 +268,3 @@ def relpose(image0: Path, image1: Path, extraction: OptionValues, num_threads: i
     if output:
         output.write_text(text + "\n")
     click.echo(text)
-
-
-@click.command()
-@click.argument("model", type=click.Path(file_okay=False, path_type=Path))
-@click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
-              help="Folder for --format text, file (.ply) for --format ply, file (.html) for --format html.")
-@click.option("--format", "fmt", type=click.Choice(["text", "ply", "html"]), default="text", show_default=True,
-              help="text: COLMAP text model (cameras.txt, images.txt, points3D.txt); ply: coloured point cloud; "
-                   "html: interactive 3D page of the points and cameras (needs plotly: pip install \"sekd-sfm[viz]\").")
-def export(model: Path, output: Path, fmt: str) -> None:
-    """Export a COLMAP model as COLMAP text files, a coloured PLY point cloud or an interactive 3D page.
-
-    \b
-    The HTML page shows the coloured 3D points and one frustum per registered image (hover
-    for its name); it embeds plotly.js, so it opens offline in any browser.
-
-    \b
-    Examples:
-      sekd export out/model -o out/model_text
-      sekd export out/model -o out/points.ply --format ply
-      sekd export out/model -o out/model.html --format html
-    """
-    from sekd_sfm.sfm.export import export_model
-
-    if fmt == "ply" and output.suffix.lower() != ".ply":
-        raise SekdError(f"{output}: a PLY export needs a file name ending in .ply")
-    click.echo(str(export_model(model, output, fmt)))
