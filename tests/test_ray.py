@@ -14,6 +14,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -367,24 +368,46 @@ def test_auto_address_finds_the_running_cluster(cluster, tmp_path):
     assert doctor.returncode == 0 and f"{address} (what --ray-address auto joins)" in doctor.stdout, doctor.stdout
 
 
-def test_auto_address_without_a_cluster_starts_a_local_one(tmp_path):
+@pytest.fixture
+def ray_tmpdir():
+    """A private root for Ray's temporary files (``$RAY_TMPDIR``), so a test sees no other run's cluster files.
+
+    Short (under /tmp): Ray's socket paths inside it must stay below the 107-byte limit of a unix socket.
+    """
+    folder = Path(tempfile.mkdtemp(prefix="sr", dir="/tmp"))
+    yield folder
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.mark.parametrize("stale", [False, True], ids=["no-cluster-file", "stale-cluster-file"])
+def test_auto_address_without_a_cluster_starts_a_local_one(tmp_path, ray_tmpdir, stale):
     """In a namespace where no cluster answers, ``auto`` starts a one-node cluster for the run and stops it after,
-    leaving no ``~/.ray/auth_token`` behind (which would make every later ``ray start --head`` here require it)."""
+    leaving no ``~/.ray/auth_token`` behind (which would make every later ``ray start --head`` here require it).
+
+    ``stale``: Ray's current-cluster file still names a cluster that was killed (nothing listens there); it is
+    treated as no cluster (``ray.init()`` alone would try to join it and refuse to start one).
+    """
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
     if shutil.which("ip") is None:
         pytest.skip("ip (iproute2) not found")
     ns = f"sekdlocal{os.getpid()}"
     if _sh("ip", "netns", "add", ns).returncode != 0:
         pytest.skip("cannot create a network namespace (needs root)")
+    if stale:
+        (ray_tmpdir / "ray").mkdir()
+        (ray_tmpdir / "ray" / "ray_current_cluster").write_text(f"127.0.0.1:{_closed_port()}")
     try:
         _sh("ip", "netns", "exec", ns, "ip", "link", "set", "lo", "up")
         token = Path.home() / ".ray" / "auth_token"
         had_token = token.exists()
         images = _photos(tmp_path / "images", 2)
         run = _sekd_in(ns, "extract", str(images), "-o", str(tmp_path / "f.h5"), "--resize-max", "160",
-                       "--max-keypoints", "100", "--no-progress", "--executor", "ray")
+                       "--max-keypoints", "100", "--no-progress", "--executor", "ray",
+                       env={"RAY_TMPDIR": str(ray_tmpdir), "SEKD_DEBUG": "1"})
         assert run.returncode == 0, run.stderr[-2000:]
         assert re.search(r"Ray: started a local cluster for this run \(1 node, \d+ CPUs?\)", run.stderr), run.stderr
+        if stale:  # said only in the debug log
+            assert "does not answer from here (127.0.0.1:" in run.stderr
         assert len({name.split("/")[0] for name in _contents(tmp_path / "f.h5")}) == 2
         deadline = time.monotonic() + 10
         while _namespace_pids(ns) and time.monotonic() < deadline:  # the driver stops what it started

@@ -170,7 +170,9 @@ def _start_local_cluster(ray, init: dict) -> None:
         and not (Path.home() / ".ray" / "auth_token").exists()
     if own:
         os.environ["RAY_AUTH_TOKEN"] = uuid.uuid4().hex + uuid.uuid4().hex
-    ray.init(num_cpus=runtime.usable_cores(), include_dashboard=False, **init)
+    # address="local": a new cluster even where Ray's current-cluster file (``ray_current_cluster`` in its temporary
+    # folder) still names one that was killed; plain ray.init() would try to join that one and refuse num_cpus.
+    ray.init(address="local", num_cpus=runtime.usable_cores(), include_dashboard=False, **init)
 
 
 def _running_cluster_address(notes: list[str]) -> str | None:
@@ -196,7 +198,9 @@ def _running_cluster_address(notes: list[str]) -> str | None:
     answering = [address for address in candidates if _answers(address)]
     if len(candidates) > len(answering):
         silent = ", ".join(sorted(set(candidates) - set(answering)))
-        notes.append(f"Ray: a cluster on this machine does not answer from here ({silent})")
+        # A killed cluster leaves its address in Ray's current-cluster file: nothing to tell the user, a local
+        # cluster starts instead (SEKD_DEBUG=1 shows it).
+        logger.debug("Ray: a cluster recorded or running on this machine does not answer from here (%s)", silent)
     if len(answering) > 1:
         notes.append(f"Ray: {len(answering)} clusters run here ({', '.join(answering)}), using {answering[0]}; "
                      "--ray-address chooses another")
