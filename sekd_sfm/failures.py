@@ -34,7 +34,7 @@ def explain(exc: BaseException, inputs: Iterable[str] = ()) -> str:
     inputs = [str(a) for a in inputs]
     if isinstance(exc, OSError) and (exc.errno is not None or exc.filename is not None):
         return _os_error(exc, _output_of(inputs))
-    if isinstance(exc, MemoryError) or _is_out_of_memory(exc):
+    if isinstance(exc, MemoryError) or is_out_of_memory(exc):
         return ("out of memory; lower --resize-max or --max-pixels, use fewer --max-keypoints or --num-threads, "
                 "or close other programs, then " + _RESUME)
     if _from_module(exc, "h5py") or isinstance(exc, OSError) and "file signature" in str(exc):
@@ -147,7 +147,7 @@ def _from_module(exc: BaseException, module: str) -> bool:
     return name == module or name.startswith(module + ".")
 
 
-def _is_out_of_memory(exc: BaseException) -> bool:
+def is_out_of_memory(exc: BaseException) -> bool:
     text = str(exc)
     return type(exc).__name__ == "OutOfMemoryError" or (
         isinstance(exc, RuntimeError) and ("can't allocate memory" in text or "out of memory" in text))

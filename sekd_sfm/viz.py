@@ -1,4 +1,5 @@
-"""Pictures of the files: keypoints and matches drawn on the images (``sekd show``), a model in 3D (HTML).
+"""Pictures of the files (``sekd show``): keypoints and matches drawn on the images, a model in 3D
+(PNG here; the interactive HTML page is ``sfm.export.export_html``).
 
 Keypoints are in original-image pixels (OpenCV convention: integer = pixel centre), so they
 are drawn on the images as stored; when no image folder is given, a grey canvas of the
@@ -176,3 +177,53 @@ def write_png(image: np.ndarray, output: str | Path) -> Path:
     except OSError as exc:
         raise SekdError(f"{output}: cannot write the picture ({exc})") from None
     return output
+
+
+# ----------------------------------------------------------------------------- a model in 3D, as a PNG
+
+#: Points drawn in a model picture at most (a seeded subset beyond): more only darken the picture.
+MODEL_PNG_MAX_POINTS = 30_000
+
+
+def draw_model(reconstruction, title: str, max_points: int = MODEL_PNG_MAX_POINTS,
+               size: tuple[int, int] = (1200, 900)) -> np.ndarray:
+    """A picture (H x W x 3 uint8 BGR, ``size`` = width, height px) of the model's coloured 3D points and
+    one red frustum per registered image, seen from behind and above the cameras (``view_frame``)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from .sfm.export import frustum_lines, model_points, scene_size, view_frame, world_from_cam
+
+    xyz, rgb, total = model_points(reconstruction, max_points)
+    centres = np.array([world_from_cam(reconstruction.image(i))[1]
+                        for i in reconstruction.reg_image_ids()]).reshape(-1, 3)
+    extent = scene_size(xyz, centres)
+    lines, _, centres = frustum_lines(reconstruction, 0.04 * extent)
+    frame = view_frame(reconstruction)
+    xyz, lines, centres = xyz @ frame.T, lines @ frame.T, centres @ frame.T
+    figure = Figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)
+    axes = figure.add_axes((0.0, 0.0, 1.0, 0.95), projection="3d")
+    dot = float(np.clip(6000 / max(len(xyz), 1), 0.5, 4.0))  # few points: larger dots, still visible
+    axes.scatter(*xyz.T, c=rgb / 255.0, s=dot, depthshade=False, linewidths=0)
+    axes.plot(*lines.T, color=(0.86, 0.12, 0.12), linewidth=0.8)
+    shown = f"{len(xyz):,} of {total:,}" if total > len(xyz) else f"{total:,}"
+    axes.set_title(f"{title}: {len(centres)} registered images, {shown} points", fontsize=10)
+    _equal_box(axes, np.concatenate([xyz, centres]) if len(xyz) else centres)
+    axes.view_init(elev=20, azim=-90)  # the eye on the -depth side: behind the cameras, a little above
+    axes.set_axis_off()
+    canvas = FigureCanvasAgg(figure)
+    canvas.draw()
+    rgba = np.asarray(canvas.buffer_rgba())
+    return np.ascontiguousarray(rgba[:, :, 2::-1])
+
+
+def _equal_box(axes, points: np.ndarray) -> None:
+    """Equal scale on the three axes around the 2-98 % range of ``points`` (N x 3): strays do not shrink the scene."""
+    if len(points) < 2:
+        return
+    low, high = np.percentile(points, [2, 98], axis=0)
+    half = max(float((high - low).max()) / 2 * 1.1, 1e-9)
+    middle = (low + high) / 2
+    for setter, centre in zip((axes.set_xlim, axes.set_ylim, axes.set_zlim), middle):
+        setter(centre - half, centre + half)
+    axes.set_box_aspect((1, 1, 1), zoom=1.5)  # matplotlib leaves a wide margin around the box

@@ -196,3 +196,57 @@ def test_html_export_of_an_empty_model(tmp_path):
     points, cameras = _plotly_data(out.read_text())
     assert len(_values(points, "x")) == len(_values(cameras, "x")) == 0
     assert "0 registered images, 0 points" in out.read_text()
+
+
+# ----------------------------------------------------------------------------- sekd show model
+
+def _export_folder(tmp_path):
+    """TINY_MODEL laid out as `sekd export --format nerfstudio` writes it: DIR/sparse/0."""
+    model = tmp_path / "splat" / "sparse" / "0"
+    model.mkdir(parents=True)
+    for name, text in TINY_MODEL.items():
+        (model / name).write_text(text)
+    return tmp_path / "splat"
+
+
+def test_show_model_html_of_an_export_folder(tmp_path):
+    pytest.importorskip("plotly")
+    out = tmp_path / "view.html"
+    result = CliRunner().invoke(sekd, ["show", "model", str(_export_folder(tmp_path)), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert result.output.strip() == f"{out}: 3 registered images, 2 points"
+    points, cameras = _plotly_data(out.read_text())
+    assert sorted({n for n in cameras["text"] if n}) == ["a/x.jpg", "b/y.jpg", "c.jpg"]
+    assert len(_values(points, "x")) == 2 and "0: 3 registered images, 2 points" in out.read_text()
+
+
+def test_show_model_png_looks_over_the_cameras(tmp_path):
+    out = tmp_path / "view.png"
+    result = CliRunner().invoke(sekd, ["show", "model", str(_export_folder(tmp_path) / "sparse/0"), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    picture = cv2.imread(str(out))
+    red = (picture[:, :, 2] > 180) & (picture[:, :, 1] < 80) & (picture[:, :, 0] < 80)
+    assert picture.shape == (900, 1200, 3) and red.sum() > 50  # frusta drawn in red
+
+
+def test_view_frame_is_upright_behind_the_cameras(tmp_path):
+    """Rows right, depth, up: up is minus the cameras' mean image-y axis, depth their mean viewing direction."""
+    import pycolmap
+
+    from sekd_sfm.sfm.export import view_frame
+
+    frame = view_frame(pycolmap.Reconstruction(str(_export_folder(tmp_path) / "sparse/0")))
+    assert np.allclose(frame @ frame.T, np.eye(3), atol=1e-9) and np.isclose(np.linalg.det(frame), 1)
+    assert frame[2] @ [0, -1, 0] > 0.99 and frame[1] @ [0, 0, 1] > 0.99  # near-identity poses: up = -y, depth = z
+
+
+@pytest.mark.parametrize("args,message", [
+    (["{t}/nowhere", "-o", "{t}/v.html"], "not a COLMAP model folder"),
+    (["{t}/splat", "-o", "{t}/v.jpg"], "ending in .html (interactive page) or .png"),
+])
+def test_show_model_errors_are_one_line(tmp_path, args, message):
+    _export_folder(tmp_path)
+    result = CliRunner().invoke(sekd, ["show", "model", *[a.format(t=tmp_path) for a in args]])
+    lines = result.output.strip().splitlines()
+    assert result.exit_code == 1 and len(lines) == 1 and lines[0].startswith("Error: "), result.output
+    assert message in lines[0], lines[0]

@@ -35,6 +35,7 @@ def doctor() -> None:
     ram = _physical_memory()
     click.echo(f"{'memory':<18}{ram / 2**30:.1f} GB" if ram else f"{'memory':<18}unknown")
     click.echo(f"{'pixel cap':<18}{DEFAULT_MAX_PIXELS / 1e6:g} MP per image (extract/reconstruct --max-pixels)")
+    click.echo(f"{'pixel budget':<18}{_tile_budget()}")
     for name, line in _extras().items():
         click.echo(f"{name:<18}{line}")
     state = "on: failures show the traceback" if debug_enabled() else "off: failures print one Error: line"
@@ -92,3 +93,14 @@ def _auto_precision_reason() -> str:
         return (f"fp32 (the CPU has native bf16, but oneDNN may not use it: ONEDNN_MAX_CPU_ISA="
                 f"{os.environ.get('ONEDNN_MAX_CPU_ISA', 'unset')})")
     return "fp32 (no native bf16)"
+
+
+def _tile_budget() -> str:
+    """SEKD's pixels per forward pass (``model.tiling``): larger images run in tiles, so memory stays bounded."""
+    from sekd_sfm.model.tiling import BYTES_PER_PIXEL, MEMORY_SHARE, memory_limit, pixel_budget
+
+    limit = memory_limit()
+    budget = pixel_budget()
+    return (f"{budget / 1e6:.1f} MP per SEKD forward pass, about {budget * BYTES_PER_PIXEL / 2**30:.1f} GB "
+            f"(1/{round(1 / MEMORY_SHARE)} of {limit / 2**30:.1f} GB); larger images run in tiles "
+            "(SEKD_PIXEL_BUDGET overrides)")

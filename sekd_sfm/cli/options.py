@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import click
@@ -162,12 +163,21 @@ max_pixels_option = click.option(
          "pixels); beyond 64x the cap they are skipped and listed as failed. 0 = no cap.")
 
 
-def extraction_options(*, max_pixels: bool = True, resize_help: str = RESIZE_HELP) -> Decorator:
-    """The group ``extraction``: --feature ... --subpixel, --max-pixels (if ``max_pixels``), --model/--weights,
-    --precision and --device; what ``presets.feature_and_match_configs`` makes a FeatureConfig of (and the
-    matcher's device)."""
+masks_option = click.option(
+    "--masks", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
+    help="Folder of masks, COLMAP's convention: photo NAME (its path below IMAGES, extension included) has the "
+         "mask MASKS/NAME.png, e.g. masks/sub/a.jpg.png for IMAGES/sub/a.jpg, the photo's size (or resized to it); "
+         "zero pixels are ignored: no keypoint there, and the --max-keypoints strongest come from the rest. Photos "
+         "without a mask file are used whole. A changed mask re-extracts its photo on resume (docs/masks.md).")
+
+
+def extraction_options(*, max_pixels: bool = True, masks: bool = False, resize_help: str = RESIZE_HELP) -> Decorator:
+    """The group ``extraction``: --feature ... --subpixel, --max-pixels (if ``max_pixels``), --masks (if ``masks``),
+    --model/--weights, --precision and --device; what ``presets.feature_and_match_configs`` makes a FeatureConfig
+    of (and the matcher's device; ``masks`` is read by the command itself)."""
     declarations = [functools.partial(feature_options, resize_help=resize_help)]
     declarations += [max_pixels_option] if max_pixels else []
+    declarations += [masks_option] if masks else []
     return option_group("extraction", *declarations, weights_option, precision_option, device_option)
 
 

@@ -141,9 +141,11 @@ def reconstruct_config(extraction: OptionValues, matching: OptionValues, camera:
 
     features, matcher = feature_and_match_configs(extraction, matching, conf)
     features.resize_max = features.resize_max or DEFAULT_RESIZE_MAX  # see RECONSTRUCT_RESIZE_HELP
+    masks = extraction.get("masks")  # an absolute path: stats.json records it for later commands (export)
     config = ReconstructConfig(features=features, pairs=pairs, matching=matcher, camera=camera_config(camera),
                                mapper_type=mapping["mapper_type"], mapper=list(mapping["mapper"]),
-                               verification=list(mapping.get("verification", ())), seed=mapping["seed"])
+                               verification=list(mapping.get("verification", ())), seed=mapping["seed"],
+                               masks=str(Path(masks).resolve()) if masks else None)
     config.refine.enabled = mapping["refine"]
     if conf:  # hloc-style names, so the files of several presets coexist in OUTPUT
         config.file_names = output_names(conf, "pairs")
@@ -164,7 +166,7 @@ def run_settings(execution: OptionValues, num_threads: int | None) -> RunSetting
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output folder: features.h5, pairs.txt, matches.h5, database.db, model/, stats.json, colmap.log.")
 @conf_option
-@extraction_options(resize_help=RECONSTRUCT_RESIZE_HELP)
+@extraction_options(resize_help=RECONSTRUCT_RESIZE_HELP, masks=True)
 @num_threads_option
 @pairing_options
 @matching_options
@@ -188,11 +190,13 @@ def reconstruct(images: Path, output: Path, extraction: OptionValues, num_thread
     instead), moves each keypoint to where its matches' patches agree (--no-refine skips
     it), imports everything into a COLMAP database, verifies the matches geometrically and
     maps (--mapper-type). Images are reduced to 1600 px on the long side unless
-    --resize-max says otherwise. Photos of the same size, EXIF make, model and focal length
-    share a camera (--camera-mode auto). The largest model is written to OUTPUT/model
-    (COLMAP binary); if the photos split into several models, the others go to
-    OUTPUT/models/1, 2, ... and the split is explained. Statistics (with the photos in no
-    model and their match counts) go to OUTPUT/stats.json, COLMAP's log to OUTPUT/colmap.log.
+    --resize-max says otherwise. --masks MASKS ignores the pixels of photo NAME where
+    MASKS/NAME.png is zero (COLMAP's convention; recorded in stats.json, docs/masks.md).
+    Photos of the same size, EXIF make, model and focal length share a camera (--camera-mode
+    auto). The largest model is written to OUTPUT/model (COLMAP binary); if the photos
+    split into several models, the others go to OUTPUT/models/1, 2, ... and the split is
+    explained. Statistics (with the photos in no model and their match counts) go to
+    OUTPUT/stats.json, COLMAP's log to OUTPUT/colmap.log.
     If no model comes out, the reason and the match statistics behind it are printed, the
     database is kept and the exit code is 1. Ctrl-C stops at once; rerun to continue.
 
@@ -201,6 +205,7 @@ def reconstruct(images: Path, output: Path, extraction: OptionValues, num_thread
       sekd reconstruct photos/ -o out/
       sekd reconstruct photos/ -o out/ --conf sekd-fast           # a preset (`sekd confs` lists them)
       sekd reconstruct photos/ -o out/ --mapper-type global
+      sekd reconstruct photos/ -o out/ --masks masks/             # masks/a.jpg.png: zero = ignore in photos/a.jpg
       sekd reconstruct photos/ -o out/ --feature sift --camera-mode single --mapper mapper.init_min_tri_angle=8
       sekd reconstruct photos/ -o out/ --features hloc/feats.h5 --matches hloc/matches.h5 --pairs-file hloc/pairs.txt
     """

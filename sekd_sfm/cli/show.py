@@ -1,4 +1,4 @@
-"""``sekd show matches`` and ``sekd show keypoints``: pictures of a feature or match file."""
+"""``sekd show matches``, ``keypoints`` and ``model``: pictures of a feature or match file, or of a model."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -12,12 +12,13 @@ MAX_SIDE_HELP = "Reduce each image to at most N px on its long side for drawing 
 
 @click.group()
 def show() -> None:
-    """Draw keypoints or matches of sekd (or hloc) files on the images, as PNG.
+    """Draw keypoints or matches of sekd (or hloc) files on the images, as PNG, or a model's cameras and points.
 
     \b
     Examples:
       sekd show keypoints out/features.h5 a/x.jpg --images photos/ -o kp.png
       sekd show matches out/features.h5 out/matches.h5 a/x.jpg b/y.jpg --images photos/ -o pair.png --inliers
+      sekd show model out/splat -o view.html
     """
 
 
@@ -84,3 +85,40 @@ def keypoints(features: Path, name: str, output: Path, images: Path | None, max_
                             max_side or None)
     write_png(canvas, output)
     click.echo(f"{output}: {len(arrays['keypoints'])} keypoints")
+
+
+@show.command()
+@click.argument("model", type=click.Path(file_okay=False, path_type=Path))
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="Page (.html: interactive, needs plotly) or picture (.png) to write.")
+@click.option("--max-points", type=click.IntRange(min=1), default=None,
+              help="Draw at most N of the 3D points (a seeded random subset). Default: 200,000 in a page, "
+                   "30,000 in a picture.")
+def model(model: Path, output: Path, max_points: int | None) -> None:
+    """Draw a model's cameras (one frustum per registered image) and coloured 3D points.
+
+    \b
+    MODEL is a COLMAP model folder (e.g. out/model) or a folder written by
+    `sekd export --format nerfstudio` (its sparse/0 is drawn). The .html page can be
+    rotated and zoomed in a browser (offline: plotly.js is embedded); the .png picture
+    looks over the cameras' shoulders.
+
+    \b
+    Examples:
+      sekd show model out/splat -o view.html
+      sekd show model out/model -o view.png
+    """
+    from sekd_sfm.errors import SekdError
+    from sekd_sfm.sfm.export import HTML_MAX_POINTS, export_html, model_folder, read_model
+    from sekd_sfm.viz import MODEL_PNG_MAX_POINTS, draw_model, write_png
+
+    suffix = output.suffix.lower()
+    if suffix not in (".html", ".htm", ".png"):
+        raise SekdError(f"{output}: give a file name ending in .html (interactive page) or .png (picture)")
+    reconstruction, title = read_model(model), str(model_folder(model))
+    if suffix == ".png":
+        write_png(draw_model(reconstruction, title, max_points or MODEL_PNG_MAX_POINTS), output)
+    else:
+        export_html(reconstruction, output, title=title, max_points=max_points or HTML_MAX_POINTS)
+    click.echo(f"{output}: {reconstruction.num_reg_images()} registered images, "
+               f"{reconstruction.num_points3D():,} points")

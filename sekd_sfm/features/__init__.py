@@ -2,7 +2,9 @@
 
 An extractor has ``name``, ``descriptor_dim``, ``binary``, optionally ``color`` (wants RGB
 ``H x W x 3`` instead of grayscale) and
-``extract(uint8 image) -> {'keypoints' N x 2, 'scores' N, 'descriptors' N x D, ...}``.
+``extract(uint8 image, mask=None) -> {'keypoints' N x 2, 'scores' N, 'descriptors' N x D, ...}``;
+``mask`` (``H x W`` bool, True = detect there) drops the keypoints on ignored pixels before the
+strongest ``max_keypoints`` are kept (docs/masks.md).
 """
 from __future__ import annotations
 

@@ -13,6 +13,9 @@ _OPENCV = {
     "kaze": (lambda n: cv2.KAZE_create(), 64, False),
 }
 CLASSIC_FEATURES = tuple(_OPENCV)
+#: Detectors that keep their ``nfeatures`` strongest BEFORE applying a mask (OpenCV's SIFT), which would leave a
+#: masked photo short of ``max_keypoints``: with a mask they run uncapped and the cut is made here, after it.
+_CAP_BEFORE_MASK = ("sift",)
 
 
 class OpenCVExtractor:
@@ -28,9 +31,16 @@ class OpenCVExtractor:
         self.name = name
         self.max_keypoints = max_keypoints
         self.detector = factory(max_keypoints or 0)
+        # The detector of masked photos: the same one, unless it would cap before the mask (_CAP_BEFORE_MASK).
+        self.masked_detector = factory(0) if name in _CAP_BEFORE_MASK else self.detector
 
-    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
-        keypoints, descriptors = self.detector.detectAndCompute(image, None)
+    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """``mask``: ``H x W`` bool, True = detect there (None: everywhere); masked keypoints are dropped before
+        the strongest ``max_keypoints`` are kept."""
+        if mask is None:
+            keypoints, descriptors = self.detector.detectAndCompute(image, None)
+        else:
+            keypoints, descriptors = self.masked_detector.detectAndCompute(image, mask.astype(np.uint8) * 255)
         dtype = np.uint8 if self.binary else np.float32
         if descriptors is None or not keypoints:
             keypoints, descriptors = [], np.zeros((0, self.descriptor_dim), dtype)

@@ -1,16 +1,21 @@
 """Learned peers through kornia, with LOCAL weights (never downloaded): DISK, ALIKED-N16, XFeat.
 
-Each is wrapped in the extractor interface: ``extract(rgb uint8 H x W x 3)`` returns
+Each is wrapped in the extractor interface: ``extract(rgb uint8 H x W x 3, mask=None)`` returns
 keypoints in OpenCV pixel-centre convention, scores, unit descriptors ``N x D`` (float32).
+With a mask, every candidate keypoint is computed (no cap), those on ignored pixels are
+dropped, then the strongest ``max_keypoints`` are kept: a masked photo keeps its budget.
 """
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..errors import SekdError
+from ..files.images import kept_at
 from ..runtime import shared_dir
 
 #: Default weight files, relative to the shared folder.
@@ -21,6 +26,9 @@ PEER_WEIGHTS = {
 }
 PEER_FEATURES = tuple(PEER_WEIGHTS)
 _DIMS = {"disk": 128, "aliked": 128, "xfeat": 64}
+#: The keypoint cap of a masked photo's candidates: ALIKED's own limit in threshold mode (kornia's
+#: ``n_limit_max``); DISK takes ``n=None`` and XFeat keeps every local maximum below any cap this high.
+UNCAPPED = 20000
 
 
 def peer_weights_path(name: str, weights: str | Path | None) -> Path:
@@ -97,24 +105,45 @@ class KorniaPeer:
         self.model = _build(name, self.weights_path, max_keypoints).to(self.device)
 
     @torch.inference_mode()
-    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """``mask``: ``H x W`` bool, True = detect there (None: everywhere)."""
         rgb = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
         x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float().div(255).to(self.device)
-        keypoints, scores, descriptors = self._run(x)
+        keypoints, scores, descriptors = self._run(x, uncapped=mask is not None)
+        if mask is not None:  # before the cut below, so the budget goes to the kept pixels
+            kept = torch.from_numpy(kept_at(mask, keypoints.cpu().numpy())).to(keypoints.device)
+            keypoints, scores, descriptors = keypoints[kept], scores[kept], descriptors[kept]
         order = torch.argsort(scores, descending=True, stable=True)[: self.max_keypoints]
         return {"keypoints": keypoints[order].cpu().numpy().astype(np.float32),
                 "scores": scores[order].cpu().numpy().astype(np.float32),
                 "descriptors": descriptors[order].cpu().numpy().astype(np.float32)}
 
-    def _run(self, x: torch.Tensor):
+    def _run(self, x: torch.Tensor, uncapped: bool = False):
+        """Keypoints ``N x 2`` (pixel centres), scores ``N`` and descriptors ``N x D``: at most ``max_keypoints``,
+        or every candidate the model finds when ``uncapped`` (a masked photo's)."""
         if self.name == "disk":
-            f = self.model(x, n=self.max_keypoints, window_size=5, score_threshold=0.0, pad_if_not_divisible=True)[0]
+            n = None if uncapped else self.max_keypoints
+            f = self.model(x, n=n, window_size=5, score_threshold=0.0, pad_if_not_divisible=True)[0]
             return f.keypoints.float(), f.detection_scores, f.descriptors
         if self.name == "aliked":
-            f = self.model(x)[0]
+            with _aliked_limit(self.model, UNCAPPED) if uncapped else contextlib.nullcontext():
+                f = self.model(x)[0]
             return f.keypoints, f.keypoint_scores, f.descriptors
         h, w = x.shape[2:]
-        f = self.model.detectAndCompute(x, top_k=self.max_keypoints)[0]
+        f = self.model.detectAndCompute(x, top_k=UNCAPPED if uncapped else self.max_keypoints)[0]
         # kornia reports XFeat keypoints of the /32-resized image at i * r; the centre is (i + 0.5) r - 0.5.
         ratio = torch.tensor([w / (w // 32 * 32), h / (h // 32 * 32)], device=x.device)
         return f["keypoints"] + 0.5 * ratio - 0.5, f["scores"], f["descriptors"]
+
+
+@contextlib.contextmanager
+def _aliked_limit(model: torch.nn.Module, cap: int) -> Iterator[None]:
+    """ALIKED's keypoint limit set to ``cap`` for one call (kornia's DKD keeps it as ``n_limit``, the limit of its
+    threshold mode, which ``KF.ALIKED`` uses; ``top_k`` in its top-k mode)."""
+    dkd = model.dkd
+    saved = dkd.n_limit, dkd.top_k
+    dkd.n_limit, dkd.top_k = cap, (cap if dkd.top_k > 0 else dkd.top_k)
+    try:
+        yield
+    finally:
+        dkd.n_limit, dkd.top_k = saved

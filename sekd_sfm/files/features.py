@@ -10,6 +10,10 @@ Layout (one group per image, nested by the image key's folders, as hloc does)::
       <key>/scores        N float32       detector score, decreasing
       <key>/image_size    2 int32         original (width, height)
       <key>/scales, <key>/orientations    N float32, classic features only
+      <key> attrs (photos with a mask file only, ``--masks``): mask_sha256 (of the file),
+             mask_ignored (fraction of the photo's pixels ignored), mask_refused (why a mask
+             was not used; the photo was used whole)
+      attrs: masks (the masks folder of the last run that had one; "" after a run without)
 
 ``descriptors`` is D x N like hloc's files, so hloc's matchers read it unchanged.
 
@@ -32,6 +36,11 @@ logger = logging.getLogger("sekd")
 FORMAT = "sekd-features"
 FORMAT_VERSION = 1
 ARRAYS = ("keypoints", "descriptors", "scores", "image_size", "scales", "orientations")
+#: An image group's attributes recording its mask (docs/masks.md); the arrays of an extracted photo carry them
+#: under these names (``extract._mask_record``), only when the photo has a mask file.
+MASK_ATTRS = ("mask_sha256", "mask_ignored", "mask_refused")
+#: File attribute: the masks folder of the last run that was given one.
+MASKS = "masks"
 
 
 def read_attrs(path: Path, file_format: str = FORMAT, *, role: str = "input") -> dict:
@@ -137,6 +146,38 @@ def write_image_group(f: h5py.File, key: str, arrays: dict[str, np.ndarray]) -> 
             group.create_dataset(name, data=value)
     if "uncertainty" in arrays:  # hloc's triangulation scales its error thresholds by it (pixels)
         group["keypoints"].attrs["uncertainty"] = float(arrays["uncertainty"])
+    for name in MASK_ATTRS:
+        if name in arrays:  # a 0-d array here (it travelled through the part store)
+            value = np.asarray(arrays[name])
+            group.attrs[name] = str(value) if value.dtype.kind == "U" else float(value)
+
+
+def mask_records(path: Path) -> dict[str, str]:
+    """``key -> mask_sha256`` of the images of a feature file extracted with a mask file ("" for the others).
+
+    An image group made by ``--ray-merge virtual`` holds virtual datasets only: its attributes
+    are read from the shard the datasets map, where the worker wrote them.
+    """
+    path = Path(path)
+    with h5py.File(path, "r") as f:
+        records: dict[str, str] = {}
+        for key in _keys_of(f):
+            group = f[key]
+            sha = group.attrs.get("mask_sha256")
+            if sha is None and group["keypoints"].is_virtual:
+                sha = _shard_attr(path, group["keypoints"], key, "mask_sha256")
+            records[key] = str(sha or "")
+    return records
+
+
+def _shard_attr(path: Path, dataset: h5py.Dataset, key: str, name: str) -> str | None:
+    """Attribute ``name`` of ``key``'s group in the shard a virtual ``dataset`` maps (None if unreadable)."""
+    source = dataset.virtual_sources()[0].file_name  # relative to the feature file's folder
+    try:
+        with h5py.File(path.parent / source, "r") as shard:
+            return shard[key].attrs.get(name) if key in shard else None
+    except OSError:
+        return None
 
 
 

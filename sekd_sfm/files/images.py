@@ -3,11 +3,16 @@
 An image's key is its path relative to the image root in POSIX form
 (``sub dir/Ünïcode 1.jpg``), used as its name in every output file. EXIF orientation
 is *not* applied: COLMAP works in the stored pixel frame, and so do we.
+
+Masks follow COLMAP's convention (docs/masks.md): the mask of photo ``NAME`` is
+``MASKS/NAME.png``, zero = ignore that pixel.
 """
 from __future__ import annotations
 
+import hashlib
 import struct
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -246,3 +251,105 @@ def to_original_pixels(keypoints: np.ndarray, sx: float, sy: float) -> np.ndarra
     if sx == 1.0 and sy == 1.0:
         return keypoints
     return ((keypoints + 0.5) * np.array([sx, sy], dtype=np.float64) - 0.5).astype(np.float32)
+
+
+#: A photo's mask is ``MASKS/<key>`` + this (COLMAP's convention: ``a/b.jpg`` -> ``a/b.jpg.png``).
+MASK_SUFFIX = ".png"
+#: A mask whose aspect ratio differs from its photo's by more than this (relative) is refused: it was made for
+#: another photo (a rotated or cropped one), and stretching it would ignore the wrong pixels.
+MASK_ASPECT_TOLERANCE = 0.02
+#: Fraction of a processed pixel that must be kept for the pixel to be kept: a processed pixel that covers any
+#: ignored original pixel is ignored (the margin absorbs float round-off of the area average).
+_KEEP_AREA = 1 - 1e-3
+
+
+@dataclass(frozen=True)
+class PhotoMask:
+    """A photo's mask as extraction uses it.
+
+    ``sha256``: of the mask file's bytes ("" = the photo has no mask file). ``keep``: ``H x W``
+    bool at the photo's original size, True = use the pixel; None = the photo is used whole (no
+    file, a file that ignores nothing, or a refused file). ``ignored``: fraction of the photo's
+    pixels ignored. ``refused``: why a mask file was not used ("" when it was).
+    """
+
+    sha256: str = ""
+    keep: np.ndarray | None = None
+    ignored: float = 0.0
+    refused: str = ""
+
+
+def mask_path(masks_dir: str | Path, key: str) -> Path:
+    """The mask file of the photo ``key``: ``masks_dir/key.png`` (COLMAP's convention)."""
+    return Path(masks_dir) / (key + MASK_SUFFIX)
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 (hex) of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def read_mask(path: str | Path, size: tuple[int, int]) -> PhotoMask:
+    """The mask at ``path`` for a photo of ``size`` = (height, width) original pixels; never raises.
+
+    No file: an empty PhotoMask (used whole). A file that cannot be decoded, ignores every
+    pixel, or has another aspect ratio than the photo is refused (``refused`` says why; the
+    photo is used whole). Any non-zero value (in any colour channel; alpha is not read) keeps
+    the pixel. A mask of another size is resized to the photo's (nearest neighbour: no grey
+    edge to threshold).
+    """
+    path = Path(path)
+    try:
+        data = np.fromfile(str(path), dtype=np.uint8)
+    except FileNotFoundError:
+        return PhotoMask()
+    except OSError as exc:
+        return PhotoMask("", None, 0.0, f"{path}: cannot read the mask ({exc.strerror}); the photo is used whole")
+    sha = hashlib.sha256(data).hexdigest()
+    keep, problem = _decode_mask(data, size)
+    if problem:
+        return PhotoMask(sha, None, 0.0, f"{path}: {problem}; the photo is used whole")
+    ignored = 1.0 - float(np.count_nonzero(keep)) / keep.size
+    return PhotoMask(sha, keep if ignored > 0 else None, ignored)
+
+
+def _decode_mask(data: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray | None, str]:
+    """``(keep H x W bool at size, "")`` or ``(None, what is wrong)`` for a mask file's bytes."""
+    try:  # UNCHANGED: a 16-bit mask of 0/1 would read as all zero through an 8-bit conversion
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION) if data.size else None
+    except cv2.error:
+        image = None
+    if image is None:
+        return None, "not a decodable image (a mask is a PNG, zero = ignore)"
+    keep = image[..., :3].any(axis=-1) if image.ndim == 3 else image != 0
+    if not keep.any():
+        return None, "the mask is zero everywhere (it would ignore the whole photo)"
+    (height, width), (mh, mw) = size, keep.shape
+    if abs((mw / mh) / (width / height) - 1) > MASK_ASPECT_TOLERANCE:
+        return None, f"the mask is {mw} x {mh} px, the photo {width} x {height}: another aspect ratio"
+    if (mh, mw) != (height, width):
+        keep = cv2.resize(keep.view(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST).astype(bool)
+    return keep, ""
+
+
+def scale_mask(keep: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``keep`` (``H x W`` bool) at ``shape`` = (height, width) <= its own, conservatively: a pixel is kept only
+    if every original pixel it covers is kept (area average), so a keypoint there never lies on an ignored one."""
+    if keep.shape == tuple(shape):
+        return keep
+    area = cv2.resize(keep.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
+    return area >= _KEEP_AREA
+
+
+def kept_at(keep: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
+    """Whether the pixel of each keypoint (``N x 2`` x, y; integer = pixel centre) is kept: ``N`` bool.
+
+    Positions outside the mask are clamped to its border pixel.
+    """
+    xy = np.rint(np.asarray(keypoints, dtype=np.float64)).astype(np.int64).reshape(-1, 2)
+    h, w = keep.shape
+    return keep[np.clip(xy[:, 1], 0, h - 1), np.clip(xy[:, 0], 0, w - 1)]

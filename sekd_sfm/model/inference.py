@@ -14,9 +14,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..files.images import scale_mask
 from ..runtime import resolve_device, resolve_precision, tune_allocator
 from .fused import fused_or_none
 from .network import STRIDE, SEKDNet, use_fast_deconv
+from .tiling import detect_tiled, pixel_budget
 
 _DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
 #: Multi-scale pyramid levels stop when a side would be this small or smaller (authors' rule).
@@ -180,11 +182,25 @@ def pyramid(image: np.ndarray, multi_scale: bool) -> list[tuple[np.ndarray, floa
     return levels
 
 
+def level_mask(mask: np.ndarray, shape: tuple[int, int], sx: float, sy: float) -> np.ndarray:
+    """The image's ``mask`` (``H x W`` bool) for a pyramid level of ``shape`` and scales (sx, sy) (``pyramid``):
+    resized as the level was (to (W / sx, H / sy), every covered pixel kept), then cropped to the stride."""
+    h, w = mask.shape
+    return scale_mask(mask, (round(h / sy), round(w / sx)))[: shape[0], : shape[1]]
+
+
+def _window(mask: np.ndarray | None, offset: tuple[int, int], shape: tuple[int, int]) -> np.ndarray | None:
+    """The part of ``mask`` under a tile's window at ``offset`` (x, y) of ``shape`` (H, W); None without a mask."""
+    return None if mask is None else mask[offset[1]:offset[1] + shape[0], offset[0]:offset[0] + shape[1]]
+
+
 class SEKDExtractor:
     """SEKD keypoints and descriptors for one grayscale image at a time.
 
-    ``extract(image)`` takes ``H x W`` uint8 (or float in [0, 1]) and returns keypoints
+    ``extract(image, mask=None)`` takes ``H x W`` uint8 (or float in [0, 1]) and returns keypoints
     ``N x 2`` float32 (x, y in the image's pixels), scores ``N`` and unit descriptors ``N x 128``.
+    ``mask`` (``H x W`` bool, True = detect there) zeroes the probability map where it is False at
+    every pyramid level, before NMS and the top-k: a masked photo keeps its ``max_keypoints``.
     """
 
     descriptor_dim = 128
@@ -197,25 +213,39 @@ class SEKDExtractor:
             self.model = Int8SEKD(net, config.device)
         else:
             self.model = FastSEKD(net, config.device, config.precision)
+        #: Pixels of one forward pass; larger images run in tiles (``tiling``), same keypoints to float round-off.
+        self.pixel_budget = pixel_budget()
 
-    def _level(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _level(self, image: np.ndarray,
+               mask: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         scale = 255.0 if image.dtype == np.uint8 else 1.0
         tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32) / scale)[None, None]
+        if image.shape[0] * image.shape[1] > self.pixel_budget:  # one pass would not fit in memory: in tiles
+            return detect_tiled(tensor, self.model,
+                                lambda prob, raw, offset: self._keypoints(prob, raw, 0, _window(mask, offset, prob.shape)),
+                                self.config.max_keypoints, self.pixel_budget)
         prob, raw = self.model(tensor)
-        prob, raw = prob[0].cpu(), raw[0].cpu()
+        return self._keypoints(prob[0].cpu(), raw[0].cpu(), self.config.max_keypoints, mask)
+
+    def _keypoints(self, prob: torch.Tensor, raw: torch.Tensor, max_keypoints: int,
+                   mask: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Keypoints ``N x 2`` (pixels of ``prob``), scores ``N``, descriptors ``N x 128`` from the network's maps
+        (``prob`` H x W, ``raw`` 128 x H/4 x W/4); ``max_keypoints`` 0 keeps all; ``mask`` (H x W bool, or None)."""
+        if mask is not None:  # probability 0 is below any threshold: no peak there, and the sub-pixel fit leans away
+            prob = prob.masked_fill(~torch.from_numpy(np.ascontiguousarray(mask)), 0.0)
         cfg = self.config
-        xy, scores = nms_keypoints(prob, cfg.nms_radius, cfg.threshold, cfg.max_keypoints)
+        xy, scores = nms_keypoints(prob, cfg.nms_radius, cfg.threshold, max_keypoints)
         xy = refine_subpixel(prob, xy) if cfg.subpixel else xy.float()
         return xy, scores, sample_descriptors(raw, xy, *prob.shape)
 
-    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> dict[str, np.ndarray]:
         if image.ndim != 2:
             raise ValueError(f"SEKD expects a single-channel image, got shape {image.shape}")
         parts = []
         for level, sx, sy in pyramid(image, self.config.multi_scale):
             if min(level.shape) < STRIDE:
                 continue
-            xy, scores, desc = self._level(level)
+            xy, scores, desc = self._level(level, None if mask is None else level_mask(mask, level.shape, sx, sy))
             # Level pixel centres map back as x_full = (x + 0.5) * s - 0.5.
             xy = (xy + 0.5) * torch.tensor([sx, sy]) - 0.5
             parts.append((xy, scores, desc))

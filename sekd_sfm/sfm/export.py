@@ -1,5 +1,9 @@
 """Model export (``sekd export``): a COLMAP model -> COLMAP text files, a coloured PLY point cloud,
-or an interactive 3D page (HTML: points and camera frusta, works offline)."""
+or an interactive 3D page (HTML: points and camera frusta, works offline).
+
+The folder for Gaussian Splatting and NeRF trainers (``--format nerfstudio``) is written by
+``export_nerfstudio.py``.
+"""
 from __future__ import annotations
 
 import html
@@ -11,16 +15,34 @@ from ..errors import SekdError
 from .colmap import require_pycolmap
 
 EXPORT_FORMATS = ("text", "ply", "html")
+#: The files of a COLMAP model (binary or text); a folder holding any of them is read as a model.
+MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin", "cameras.txt", "images.txt", "points3D.txt")
 #: Points drawn in the HTML page at most (a random, seeded subset beyond): keeps the page light in a browser.
 HTML_MAX_POINTS = 200_000
 
 
+def _is_model(folder: Path) -> bool:
+    return folder.is_dir() and any((folder / name).is_file() for name in MODEL_FILES)
+
+
+def model_folder(path: str | Path) -> Path:
+    """The COLMAP model in ``path``: ``path`` itself, or the model of an export folder for
+    Gaussian Splatting / NeRF (``path/sparse/0``, or ``path/sparse`` as COLMAP's undistorter
+    writes it). ``path`` unchanged when none holds a model (``read_model`` then says so)."""
+    path = Path(path)
+    for folder in (path, path / "sparse" / "0", path / "sparse"):
+        if _is_model(folder):
+            return folder
+    return path
+
+
 def read_model(model: str | Path):
-    """A COLMAP model folder (binary or text) as a pycolmap Reconstruction; SekdError if it is not one."""
-    model = Path(model)
-    names = ("cameras.bin", "images.bin", "points3D.bin", "cameras.txt", "images.txt", "points3D.txt")
-    if not model.is_dir() or not any((model / n).is_file() for n in names):
-        raise SekdError(f"{model}: not a COLMAP model folder (no cameras/images/points3D .bin or .txt files)")
+    """A COLMAP model folder (binary or text), or an export folder holding one (``model_folder``),
+    as a pycolmap Reconstruction; SekdError if it is neither."""
+    given, model = Path(model), model_folder(model)
+    if not _is_model(model):
+        raise SekdError(f"{given}: not a COLMAP model folder (no cameras/images/points3D .bin or .txt files, "
+                        "nor an export folder with sparse/0)")
     try:
         return require_pycolmap().Reconstruction(str(model))
     except (ValueError, RuntimeError) as exc:
@@ -47,14 +69,14 @@ def export_model(model: str | Path, output: str | Path, fmt: str = "text") -> Pa
     return output
 
 
-def _pose(image):
-    """``world_from_cam`` of a pycolmap Image as (R 3x3, centre 3).
+def world_from_cam(image) -> tuple[np.ndarray, np.ndarray]:
+    """The pose of a pycolmap Image as camera-to-world (R 3x3, camera centre 3, world units).
 
     ``cam_from_world`` became a method (from a property) with the rigs of pycolmap 3.12.
     """
     cam_from_world = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
-    world_from_cam = cam_from_world.inverse()
-    return world_from_cam.rotation.matrix(), np.asarray(world_from_cam.translation)
+    pose = cam_from_world.inverse()
+    return pose.rotation.matrix(), np.asarray(pose.translation)
 
 
 def frustum_lines(reconstruction, size: float) -> tuple[np.ndarray, list[str], np.ndarray]:
@@ -68,7 +90,7 @@ def frustum_lines(reconstruction, size: float) -> tuple[np.ndarray, list[str], n
     for image_id in sorted(reconstruction.reg_image_ids()):
         image = reconstruction.image(image_id)
         camera = reconstruction.camera(image.camera_id)
-        rotation, centre = _pose(image)
+        rotation, centre = world_from_cam(image)
         corners = np.array([[0, 0], [camera.width, 0], [camera.width, camera.height], [0, camera.height]], float)
         rays = np.c_[camera.cam_from_img(corners), np.ones(4)]  # COLMAP pixel corners -> normalised, z = 1
         # Depth scaled so the frustum's longer side is about ``size`` whatever the focal length.
@@ -82,12 +104,31 @@ def frustum_lines(reconstruction, size: float) -> tuple[np.ndarray, list[str], n
     return np.array(points).reshape(-1, 3), names, np.array(centres).reshape(-1, 3)
 
 
+def view_frame(reconstruction) -> np.ndarray:
+    """3 x 3 rotation whose rows are the picture's right, depth and up axes, in world coordinates.
+
+    Up is the cameras' mean "up" (COLMAP's camera y axis points down in the image), depth their
+    mean viewing direction made orthogonal to it: the picture looks over the cameras' shoulders.
+    """
+    rotations = [world_from_cam(reconstruction.image(i))[0] for i in reconstruction.reg_image_ids()]
+    if not rotations:
+        return np.eye(3)
+    up = -np.mean([r[:, 1] for r in rotations], axis=0)
+    forward = np.mean([r[:, 2] for r in rotations], axis=0)
+    up /= np.linalg.norm(up) or 1.0
+    forward -= forward @ up * up
+    if np.linalg.norm(forward) < 1e-9:  # cameras looking straight up or down: any horizontal depth axis
+        forward = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    forward /= np.linalg.norm(forward)
+    return np.stack([np.cross(forward, up), forward, up])
+
+
 #: Points farther from the median point than this many times the 90th-percentile distance are
 #: left out of the page: a few stray far points would otherwise shrink the scene to a dot.
 FAR_POINT_FACTOR = 4.0
 
 
-def _points(reconstruction, max_points: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, int]:
+def model_points(reconstruction, max_points: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, int]:
     """3D points (N x 3) and RGB colours (N x 3 uint8) to draw: far strays left out, then at most
     ``max_points`` (a seeded random subset). Also returns the model's total point count."""
     xyz = np.array([p.xyz for p in reconstruction.points3D.values()], float).reshape(-1, 3)
@@ -103,13 +144,35 @@ def _points(reconstruction, max_points: int, seed: int = 0) -> tuple[np.ndarray,
     return xyz, rgb, total
 
 
-def _scene_size(xyz: np.ndarray, centres: np.ndarray) -> float:
+def scene_size(xyz: np.ndarray, centres: np.ndarray) -> float:
     """A robust scene extent: the 5-95 % range of points and cameras (far outliers ignored)."""
     everything = np.concatenate([xyz, centres]) if len(xyz) else centres
     if len(everything) < 2:
         return 1.0
     low, high = np.percentile(everything, [5, 95], axis=0)
     return float(np.linalg.norm(high - low)) or 1.0
+
+
+def _plotly_camera(frame: np.ndarray, drawn: np.ndarray) -> dict:
+    """plotly's scene camera looking over the cameras' shoulders (``view_frame``), far enough back to see
+    everything ``drawn`` (N x 3).
+
+    plotly places the eye in units of its scene box, whose sides (``aspectmode`` data) are the data
+    ranges divided by their geometric mean; one world direction is the same direction there.
+    """
+    ranges = np.ptp(drawn, axis=0) if len(drawn) > 1 else np.ones(3)
+    ranges = np.maximum(ranges, 1e-9 * max(ranges.max(), 1e-9))
+    box = ranges / np.exp(np.log(ranges).mean())
+    _right, depth, up = frame
+    # About 25 degrees above the cameras, 1.1 box lengths back: plotly's default eye (1.25, 1.25, 1.25)
+    # left the cameras of a real scene outside the view (seen in headless Chromium on fountain-P11).
+    direction = up * 0.45 - depth
+    eye = direction / np.linalg.norm(direction) * 1.1 * box.max()
+    return {"up": _xyz(up), "eye": _xyz(eye)}
+
+
+def _xyz(vector: np.ndarray) -> dict:
+    return {"x": float(vector[0]), "y": float(vector[1]), "z": float(vector[2])}
 
 
 def export_html(reconstruction, output: str | Path, title: str = "model", max_points: int = HTML_MAX_POINTS) -> Path:
@@ -126,9 +189,11 @@ def export_html(reconstruction, output: str | Path, title: str = "model", max_po
     output = Path(output)
     if output.suffix.lower() not in (".html", ".htm"):
         raise SekdError(f"{output}: an HTML export needs a file name ending in .html")
-    xyz, rgb, total = _points(reconstruction, max_points)
-    centres = np.array([_pose(reconstruction.image(i))[1] for i in reconstruction.reg_image_ids()]).reshape(-1, 3)
-    lines, names, centres = frustum_lines(reconstruction, 0.04 * _scene_size(xyz, centres))
+    xyz, rgb, total = model_points(reconstruction, max_points)
+    centres = np.array([world_from_cam(reconstruction.image(i))[1]
+                        for i in reconstruction.reg_image_ids()]).reshape(-1, 3)
+    lines, names, centres = frustum_lines(reconstruction, 0.04 * scene_size(xyz, centres))
+    frame = view_frame(reconstruction)
     shown = f"{len(xyz):,} of {total:,}" if total > len(xyz) else f"{total:,}"
     figure = go.Figure([
         go.Scatter3d(x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], mode="markers", name=f"3D points ({shown})",
@@ -140,8 +205,7 @@ def export_html(reconstruction, output: str | Path, title: str = "model", max_po
         title=f"{html.escape(title)}: {len(centres)} registered images, {shown} points",
         scene={"aspectmode": "data", "xaxis": {"visible": False}, "yaxis": {"visible": False},
                "zaxis": {"visible": False}},
-        # COLMAP's y axis points down in the image: look from behind the cameras, y up on screen.
-        scene_camera={"up": {"x": 0, "y": -1, "z": 0}, "eye": {"x": 0.4, "y": -1.0, "z": -1.4}},
+        scene_camera=_plotly_camera(frame, np.concatenate([xyz, lines[~np.isnan(lines[:, 0])]])),
         margin={"l": 0, "r": 0, "t": 40, "b": 0}, legend={"x": 0, "y": 1})
     output.parent.mkdir(parents=True, exist_ok=True)
     try:

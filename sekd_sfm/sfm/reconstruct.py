@@ -28,7 +28,7 @@ from typing import Any
 from .. import execution
 from ..errors import SekdError
 from ..execution import RayOptions
-from ..extract import extract_features
+from ..extract import changed_masks, extract_features
 from ..features import FeatureConfig
 from ..files import features as ff
 from ..files import matches as mf
@@ -104,6 +104,9 @@ class ReconstructConfig:
     #: Names of the feature and match files made in the output folder (``--conf`` names them
     #: hloc-style, feats-<conf>.h5 and matches-<conf>_pairs.h5, so several presets' files coexist).
     file_names: tuple[str, str] = ("features.h5", "matches.h5")
+    #: Folder of masks (``--masks``; photo NAME's is ``masks/NAME.png``, zero = ignore; docs/masks.md), or None.
+    #: Recorded in stats.json as ``config.masks``, where later commands (``sekd export``) find it.
+    masks: str | None = None
 
 
 @dataclass(frozen=True)
@@ -281,21 +284,30 @@ def _inputs(image_dir: Path, out: Path, config: ReconstructConfig, settings: Run
     Extraction and matching run where ``settings.executor`` says, in one session: a Ray cluster is
     connected to (or a local one started) once for both stages, not once per stage.
     """
+    masks = Path(config.masks) if config.masks else None
+    rematch = False
     with execution.session(settings.executor, settings.ray_options):
         with timer("extract"):
             if features is None:
+                # Photos extracted again because their mask changed: the reused matches of their pairs are stale.
+                rematch = bool(changed_masks(out / config.file_names[0], masks))
+                if rematch and not settings.overwrite:
+                    logger.info("matching every pair again: photos are extracted again (their masks changed)")
                 features = extract_features(image_dir, out / config.file_names[0], config.features,
                                             overwrite=settings.overwrite, num_threads=settings.num_threads,
                                             progress=settings.progress, executor=settings.executor,
-                                            ray_options=settings.ray_options)
+                                            ray_options=settings.ray_options, masks=masks)
             else:
                 ff.read_attrs(Path(features))  # sekd or hloc, else one clear error
+                if masks is not None:
+                    logger.warning("warning: --masks %s: not applied to --features %s, which is used as it is",
+                                   masks, features)
         with timer("pairs"):
             pairs_file = _pairs_file(out, config.pairs, features, matches, settings.progress)
         with timer("match"):
             if matches is None:
                 matches = match_features(features, pairs_file, out / config.file_names[1], config.matching,
-                                         overwrite=settings.overwrite, num_threads=settings.num_threads,
+                                         overwrite=settings.overwrite or rematch, num_threads=settings.num_threads,
                                          progress=settings.progress, executor=settings.executor,
                                          ray_options=settings.ray_options)
     return Path(features), pairs_file, Path(matches)
