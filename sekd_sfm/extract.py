@@ -230,7 +230,7 @@ def extract_features(
 
     Finished images are saved to ``<output>.parts/`` at least every ``checkpoint_seconds``
     (what a kill loses at most) and written into ``output`` once, at the end (see
-    ``featurefile``). Holds ``output``'s lock: a second run on the same file is refused.
+    ``files.partstore``). Holds ``output``'s lock: a second run on the same file is refused.
     ``executor="ray"`` extracts on a Ray cluster (``execution``), same file.
     """
     config = config or FeatureConfig()

@@ -362,7 +362,7 @@ def match_features(
     Pairs are streamed in batches: memory holds the pair list, the descriptors of at most
     CACHE_IMAGES images and one batch of results. Finished pairs are saved to
     ``<output>.parts/`` at least every ``checkpoint_seconds`` and written into ``output`` once,
-    at the end (see ``featurefile``). Holds ``output``'s lock: a second run on the same file is refused.
+    at the end (see ``files.partstore``). Holds ``output``'s lock: a second run on the same file is refused.
     """
     config = config or MatchConfig()
     features, pairs_path, output = Path(features), Path(pairs), Path(output)

@@ -169,6 +169,37 @@ def cpu_description() -> dict:
             "torch_kernels": torch.backends.cpu.get_cpu_capability(), "cores": os.cpu_count()}
 
 
+def source_commit() -> str:
+    """The git commit of this package's source, with ``+dirty`` for uncommitted changes; "" for an installed copy."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    if not (root / ".git").exists():
+        return ""
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10,
+                              check=True).stdout.strip()
+
+    try:
+        commit = git("rev-parse", "--short=12", "HEAD")
+        return commit + ("+dirty" if git("status", "--porcelain", "--untracked-files=no", "--", "sekd_sfm") else "")
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+def run_record() -> dict:
+    """What every benchmark result records, so no table mixes machines or versions silently: the sekd version, the
+    source commit, the CPU (model, features, torch's kernels, cores), the command line and the date."""
+    import time
+
+    from . import __version__
+
+    return {"sekd_sfm": __version__, "commit": source_commit(), "cpu": cpu_description(),
+            "command": " ".join(["sekd" if Path(sys.argv[0]).name == "sekd" else sys.argv[0], *sys.argv[1:]]),
+            "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+
+
 def timing_context() -> dict:
     """What a benchmark's wall-clock columns (ms per image) depend on: the CPU and torch's intra-op threads."""
     return {"cpu": cpu_description(), "threads": torch.get_num_threads()}

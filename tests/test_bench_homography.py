@@ -171,6 +171,8 @@ def test_cli_skips_absent_peer_weights(tmp_path, monkeypatch, caplog):
 def test_cli_num_threads_is_used_and_recorded(tmp_path):
     import torch
 
+    import sekd_sfm
+
     make_sequence(tmp_path / "data", "v_shift")
     before = torch.get_num_threads()
     try:
@@ -180,6 +182,9 @@ def test_cli_num_threads_is_used_and_recorded(tmp_path):
         results = json.loads((tmp_path / "out/results.json").read_text())
         assert results["config"]["num_threads"] == 1 == results["timing"]["threads"] == torch.get_num_threads()
         assert results["timing"]["cpu"]["cores"] >= 1
+        record = results["record"]  # every result names its version, source commit, machine and command
+        assert record["sekd_sfm"] == sekd_sfm.__version__ and record["cpu"]["model"]
+        assert set(record) == {"sekd_sfm", "commit", "cpu", "command", "date"}
     finally:
         torch.set_num_threads(before)
     refused = CliRunner().invoke(sekd, ["bench", "pose", "--num-threads", "0"])

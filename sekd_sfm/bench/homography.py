@@ -24,7 +24,7 @@ from ..evaluation.datasets import Sequence, find_sequences
 from ..files import features as ff
 from ..files.images import read_image, resized_to_original_matrix
 from ..match import match_descriptors
-from ..runtime import package_versions, timing_context
+from ..runtime import package_versions, run_record, timing_context
 from .methods import Method, cached_features, evaluate_each
 
 logger = logging.getLogger("sekd")
@@ -147,7 +147,7 @@ def run_homography_benchmark(roots: list[Path], methods: list[Method], output: P
     cache = Path(output) / "cache" / config.image_tag()
     scales = prepare_images(sequences, cache / "images", config)
     results = {"config": asdict(config), "sequences": [s.name for s in sequences],
-               "versions": package_versions(), "methods": {}}
+               "versions": package_versions(), "record": run_record(), "methods": {}}
 
     def evaluate(method: Method) -> dict:
         feature_config = method.feature_config(config.max_keypoints, config.precision, config.threshold,

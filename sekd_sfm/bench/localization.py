@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import SekdError
 from ..evaluation.samplers import random_centred_homography
 from ..files.atomic import write_atomic
-from ..runtime import package_versions, shared_dir, timing_context
+from ..runtime import package_versions, run_record, shared_dir, timing_context
 from .methods import Method, evaluate_each
 
 logger = logging.getLogger("sekd")
@@ -136,6 +136,7 @@ def run_localization_benchmark(output: str | Path, methods: list[Method], config
     homographies = warp_photos(photos, out / "images", config)
     results = evaluate_each(methods, lambda m: _evaluate(m, out / "images", out / "work", homographies, config))
     report = {"config": asdict(config), "photos": [p.name for p in photos], "versions": package_versions(),
+              "record": run_record(),
               "timing": timing_context(),
               "results": results}
     path = write_atomic(out / "results.json", json.dumps(report, indent=1))

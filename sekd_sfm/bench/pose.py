@@ -23,7 +23,7 @@ from ..evaluation import metrics
 from ..evaluation.datasets import PoseScene, read_pose_scene
 from ..files import features as ff
 from ..match import DEFAULT_RATIO, FALLBACK_RATIO, ROOTSIFT_FEATURES, match_descriptors
-from ..runtime import package_versions, timing_context
+from ..runtime import package_versions, run_record, timing_context
 from .methods import Method, cached_features, evaluate_each
 
 logger = logging.getLogger("sekd")
@@ -126,7 +126,7 @@ def run_pose_benchmark(scene_dirs: list[Path], methods: list[Method], output: Pa
     config = config or PoseConfig()
     scenes = [read_pose_scene(d) for d in scene_dirs]
     results = {"config": asdict(config), "scenes": [s.name for s in scenes], "versions": package_versions(),
-               "methods": {}}
+               "record": run_record(), "methods": {}}
 
     def evaluate(method: Method) -> dict:
         pairs = _evaluate_method(method, scenes, Path(output) / "cache", config)

@@ -25,7 +25,7 @@ from ..extract import extract_features
 from ..features import FeatureConfig
 from ..files.features import read_attrs, read_features
 from ..match import MatchConfig, describe_config, match_descriptors
-from ..runtime import package_versions, shared_dir
+from ..runtime import package_versions, run_record, shared_dir
 from ..sfm.colmap import colmap_log, log_prefix, require_pycolmap
 from ..sfm.mapping import mapper_options, run_mapper
 from ..sfm.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
@@ -156,7 +156,7 @@ def benchmark_sfm(scene: str | Path, output_dir: str | Path, config: Reconstruct
         results.append(run_pycolmap_sift(scene, out / "pycolmap", config.features.resize_max or 3200,
                                          config.camera.mode, config.seed, num_threads))
     report = {"scene": str(scene), "images": len(truth), "resize_max": config.features.resize_max,
-              "results": results, "versions": package_versions()}
+              "results": results, "versions": package_versions(), "record": run_record()}
     write_json(report, out / "results.json")
     (out / "results.md").write_text(sfm_markdown(report))
     return report
@@ -244,7 +244,7 @@ def benchmark_ratios(scene: str | Path, output_dir: str | Path, features: list[s
     pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1: i + 1 + max_gap]]
     report = {"scene": str(scene), "pairs": len(pairs), "epipolar_threshold_px": EPIPOLAR_THRESHOLD_PX,
               "min_precision": MIN_PRECISION, "resize_max": base.resize_max, "max_keypoints": base.max_keypoints,
-              "features": {}, "versions": package_versions()}
+              "features": {}, "versions": package_versions(), "record": run_record()}
     for feature in features:
         # --weights is SEKD's checkpoint; the learned peers load their own local weights.
         config = replace(base, feature=feature, weights=base.weights if feature == "sekd" else None)

@@ -18,7 +18,7 @@ from torch import nn
 from ..files.images import list_images, read_image
 from ..model.inference import SEKDConfig, SEKDExtractor, nms_keypoints, sample_descriptors
 from ..model.network import SEKDNet
-from ..runtime import cpu_description, package_versions, set_num_threads
+from ..runtime import cpu_description, package_versions, run_record, set_num_threads
 
 
 def count_macs(net: nn.Module, height: int, width: int) -> int:
@@ -185,4 +185,5 @@ def benchmark_speed(net: SEKDNet, image_dir: Path, count: int = 8, height: int =
         **extra,
         "cpu": cpu_description(),  # which machine type the rates belong to
         "versions": package_versions(),
+        "record": run_record(),
     }

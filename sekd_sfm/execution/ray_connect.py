@@ -317,7 +317,7 @@ def _free_cores_here(ray) -> float:
 
 
 def driver_merges_while_running(options: RayOptions | None = None) -> bool:
-    """Whether the driver writes the workers' chunks into the output as they arrive (``featurefile.Merge``).
+    """Whether the driver writes the workers' chunks into the output as they arrive (``files.partstore.Merge``).
 
     With ``--ray-merge copy``, and only where the driver's machine has a core that no Ray node
     on it was given (a login node, a head node started with ``--num-cpus 0``): there the copy
