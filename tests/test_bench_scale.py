@@ -346,6 +346,60 @@ def test_scene_errors(tmp_path):
         read_scene(tmp_path)
 
 
+def test_ring_scene_photographs_the_object_from_a_circle(tmp_path, shared):
+    from sekd_sfm.bench.scale.layout import RING_ELEVATION_DEG, RING_TARGET
+
+    config = SceneConfig(num_images=8, image_size=160, hfov_deg=24, layout="ring", seed=2)
+    generate_scene(tmp_path, config, progress=False)
+    scene = read_scene(tmp_path)
+    assert scene["config"]["layout"] == "ring" and scene["distractors"] == [] and len(scene["cameras"]) == 8
+    layout = layout_scene(config)
+    centers = np.array([camera.center for camera in layout.cameras])
+    distances = np.linalg.norm(centers - RING_TARGET, axis=1)
+    assert np.allclose(distances, layout.block.distance, rtol=0.05)  # a circle around the target
+    elevations = np.degrees(np.arcsin((centers[:, 2] - RING_TARGET[2]) / distances))
+    assert np.allclose(elevations, RING_ELEVATION_DEG, atol=4)
+    azimuths = np.degrees(np.arctan2(centers[:, 1], centers[:, 0])) % 360
+    assert np.allclose(np.diff(azimuths), 45, atol=3)  # evenly around
+    for camera in scene["cameras"].values():
+        assert camera.K[0, 0] == pytest.approx(80 / math.tan(math.radians(12)))  # 24 deg over 160 px
+        pix, depth = camera.project(RING_TARGET[None])
+        assert depth[0] > 0 and np.hypot(*(pix[0] - [79.5, 59.5])) < 15  # looking at the object's middle
+        _, face_id = render(camera, layout.faces, layout.textures)
+        assert (face_id >= 0).mean() > 0.6  # the object and its plate fill the photo
+    pairs = read_covisibility(tmp_path, min_overlap=0.1)
+    names = sorted(scene["cameras"])
+    assert frozenset(names[:2]) in pairs and frozenset((names[0], names[-1])) in pairs  # the ring closes
+
+
+def test_scene_layouts_and_the_block_record_of_older_scenes():
+    from sekd_sfm.bench.scale.scene import _config_record
+
+    assert "layout" not in _config_record(SceneConfig())  # block scenes generated before the ring stay reusable
+    assert _config_record(SceneConfig(layout="ring"))["layout"] == "ring"
+    with pytest.raises(SekdError, match="unknown scene layout 'spiral'; choose from block, ring"):
+        SceneConfig(layout="spiral")
+
+
+def test_cli_generates_a_ring(tmp_path, shared):
+    result = CliRunner().invoke(sekd, ["bench", "scale", "--layout", "ring", "--hfov", "24", "--sizes", "8",
+                                       "--image-size", "96", "--generate-only", "-o", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    scene = read_scene(tmp_path / "n8/scene")
+    assert scene["config"]["layout"] == "ring" and scene["config"]["hfov_deg"] == 24 and len(scene["cameras"]) == 8
+
+
+def test_rotation_and_translation_errors_apart():
+    from sekd_sfm.bench.scale.run import pair_rotation_translation_errors
+
+    truth = {"a.jpg": Camera(K, np.eye(3), np.zeros(3), 160, 120),
+             "b.jpg": Camera(K, np.eye(3), np.array([-1.0, 0, 0]), 160, 120)}
+    turn, _ = cv2.Rodrigues(np.array([0.0, 0.0, math.radians(2)]))  # b turned 2 deg, its translation unchanged
+    estimated = {"a.jpg": (np.eye(3), np.zeros(3)), "b.jpg": (turn, np.array([-1.0, 0, 0]))}
+    rotation, translation = pair_rotation_translation_errors(estimated, truth, ["a.jpg", "b.jpg"], np.array([[0, 1]]))
+    assert rotation[0] == pytest.approx(2, abs=1e-6) and translation[0] == pytest.approx(0, abs=1e-4)
+
+
 def test_pair_errors_ignore_the_world_frame_and_fail_unregistered_pairs():
     rng = np.random.default_rng(0)
     truth = {}

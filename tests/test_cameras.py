@@ -14,6 +14,7 @@ from sekd_sfm.sfm.database import (
     camera_key,
     images_per_camera,
     refines_principal_point,
+    tries_principal_point,
 )
 from sekd_sfm.sfm.mapping import default_options, set_principal_point_refinement
 
@@ -86,19 +87,21 @@ def test_images_per_camera_counts_the_auto_groups(folder, tmp_path_factory):
     assert images_per_camera(database) == [1, 1, 1, 2, 3]  # d, e, h alone; f-g; a-c
 
 
-@pytest.mark.parametrize("setting, params, per_camera, refined", [
-    ("auto", None, [11], True),                                   # fountain-P11: one camera, 11 photos
-    ("auto", None, [PRINCIPAL_POINT_MIN_IMAGES] * 3, True),
-    ("auto", None, [40, PRINCIPAL_POINT_MIN_IMAGES - 1], False),  # one camera too few photos: all stay fixed
-    ("auto", None, [1] * 10, False),                              # internet photos, one camera each
-    ("auto", None, [], False),
-    ("auto", "100,32,24", [50], False),                           # known intrinsics are kept
-    ("refine", None, [1], True),
-    ("fixed", None, [50], False),
+@pytest.mark.parametrize("setting, params, per_camera, refined, tested", [
+    # auto: the mapper keeps it fixed; a final adjustment refines it, kept where the photos determine it
+    ("auto", None, [11], False, True),                                   # fountain-P11: one camera, 11 photos
+    ("auto", None, [PRINCIPAL_POINT_MIN_IMAGES] * 3, False, True),
+    ("auto", None, [40, PRINCIPAL_POINT_MIN_IMAGES - 1], False, False),  # one camera too few photos: all stay fixed
+    ("auto", None, [1] * 10, False, False),                              # internet photos, one camera each
+    ("auto", None, [], False, False),
+    ("auto", "100,32,24", [50], False, False),                           # known intrinsics are kept
+    ("refine", None, [1], True, False),                                  # refined from the start of mapping
+    ("fixed", None, [50], False, False),
 ])
-def test_principal_point_rule(setting, params, per_camera, refined):
+def test_principal_point_rule(setting, params, per_camera, refined, tested):
     camera = CameraConfig(params=params, principal_point=setting)
     assert refines_principal_point(camera, per_camera) is refined
+    assert tries_principal_point(camera, per_camera) is tested
 
 
 def test_unknown_principal_point_setting_is_an_error():

@@ -190,12 +190,12 @@ def test_principal_point_setting_and_an_explicit_mapper_override(synthetic):
     _, _, out, _ = synthetic
     refine = CameraConfig(model="SIMPLE_PINHOLE", mode="single", params=CALIBRATED.params, principal_point="refine")
     options = mapper_options([])
-    assert _principal_point(ReconstructConfig(camera=refine), out / "database.db", options) == "refined"
+    assert _principal_point(ReconstructConfig(camera=refine), out / "database.db", options).outcome == "refined"
     assert options.ba_refine_principal_point is True
     assignment = ["ba_refine_principal_point=false"]
     options = mapper_options(assignment)
     assert _principal_point(ReconstructConfig(camera=refine, mapper=assignment), out / "database.db",
-                            options) == "set by --mapper"
+                            options).outcome == "set by --mapper"
     assert options.ba_refine_principal_point is False  # the user's --mapper value is left alone
 
 

@@ -27,7 +27,13 @@ def _sizes(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--image-size", type=click.IntRange(min=64), default=640, show_default=True,
               help="Long side of the generated photos (px).")
 @click.option("--spacing", type=click.FloatRange(min=0.1), default=1.5, show_default=True,
-              help="Metres walked between two consecutive photos.")
+              help="Metres walked between two consecutive photos (block).")
+@click.option("--layout", type=click.Choice(["block", "ring"]), default="block", show_default=True,
+              help="block: a walk around a city block; ring: a turntable series, the photos taken from a circle "
+                   "around an object (no distractors).")
+@click.option("--hfov", "hfov_deg", type=click.FloatRange(min=10, max=120), default=60.0, show_default=True,
+              help="Horizontal field of view of the generated photos (deg); 24 at 640 px is a focal length of "
+                   "1,500 px (a long lens).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Scene layout, cameras and mapper seed.")
 @click.option("--textures", type=click.Path(file_okay=False, exists=True), default=None,
               help="Folder of photos for the facades and distractors (default: $SEKD_SHARED/data/train/coco).")
@@ -47,17 +53,19 @@ def _sizes(ctx, param, value: str) -> tuple[int, ...]:
 @mapper_type_option
 @mapper_option
 @refine_option
-def scale(sizes, output, image_size, spacing, seed, textures, no_baseline, baseline_map_max, num_threads,
+def scale(sizes, output, image_size, spacing, layout, hfov_deg, seed, textures, no_baseline, baseline_map_max, num_threads,
           generate_only, baseline_from, weights, max_keypoints, mapper_type, mapper, refine) -> None:
     """Our pipeline and pycolmap's SIFT pipeline on generated scenes of growing size.
 
     \b
     Each scene is a city block of textured box buildings photographed by a camera walking
     around it (one photo every --spacing m), with known cameras, ground-truth co-visibility,
-    lighting changes and ~3% unrelated distractor photos. Per size and stage (extract, pairs,
-    match, refine, import, verify, map): wall time, peak RSS and bytes written; per pipeline: registered
-    photos, registered distractors, pose AUC@5 against the true cameras; then the growth
-    exponent of each stage. Our pipeline runs with `sekd reconstruct`'s defaults unless
+    lighting changes and ~3% unrelated distractor photos; with --layout ring, a few textured
+    boxes photographed from N cameras on a circle around them (a turntable series; --hfov 24
+    is a long lens). Per size and stage (extract, pairs, match, refine, import, verify, map):
+    wall time, peak RSS and bytes written; per pipeline: registered photos, registered
+    distractors, models, pose AUC@5 and median errors against the true cameras; then the
+    growth exponent of each stage. Our pipeline runs with `sekd reconstruct`'s defaults unless
     --weights, --max-keypoints, --mapper-type, --mapper or --no-refine say otherwise.
     Finished sizes are skipped when the command is run again on the same folder with the
     same settings; with other settings of our pipeline, only ours reruns (pycolmap's run is
@@ -70,6 +78,7 @@ def scale(sizes, output, image_size, spacing, seed, textures, no_baseline, basel
       sekd bench scale --sizes 2000 -o out/scale              # pycolmap: features and verification only
       sekd bench scale --sizes 1000 --generate-only -o out/scale
       sekd bench scale --sizes 250,500 -o out/hier --baseline-from out/scale --mapper-type hierarchical
+      sekd bench scale --layout ring --hfov 24 --sizes 47 -o out/ring  # a long lens around an object
     """
     import json
 
@@ -79,7 +88,8 @@ def scale(sizes, output, image_size, spacing, seed, textures, no_baseline, basel
     if generate_only:
         for size in sizes:
             path = generate_scene(output / f"n{size}" / "scene", SceneConfig(
-                num_images=size, image_size=image_size, spacing=spacing, seed=seed, textures=textures))
+                num_images=size, image_size=image_size, spacing=spacing, seed=seed, textures=textures, layout=layout,
+                hfov_deg=hfov_deg))
             seconds = json.loads(path.read_text())["generation_s"]
             click.echo(f"n={size}: {path.parent} ({seconds:.1f} s, {size / max(seconds, 1e-9):.1f} images/s)")
         return
@@ -94,7 +104,8 @@ def scale(sizes, output, image_size, spacing, seed, textures, no_baseline, basel
         reconstruct_config.features.weights = weights
     if max_keypoints:
         reconstruct_config.features.max_keypoints = max_keypoints
-    config = ScaleConfig(sizes=sizes, image_size=image_size, spacing=spacing, seed=seed, baseline=not no_baseline,
+    config = ScaleConfig(sizes=sizes, image_size=image_size, spacing=spacing, layout=layout, hfov_deg=hfov_deg,
+                         seed=seed, baseline=not no_baseline,
                          num_threads=num_threads, textures=textures,
                          baseline_from=str(baseline_from) if baseline_from else None,
                          baseline_map_max=baseline_map_max or None)

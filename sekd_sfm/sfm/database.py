@@ -26,15 +26,17 @@ logger = logging.getLogger("sekd")
 CAMERA_MODES = {"auto": "AUTO", "single": "SINGLE", "per-folder": "PER_FOLDER", "per-image": "PER_IMAGE"}
 #: OpenCV -> COLMAP pixel convention.
 COLMAP_PIXEL_OFFSET = 0.5
-#: The principal point in bundle adjustment: ``auto`` (refined when every camera has
-#: PRINCIPAL_POINT_MIN_IMAGES photos and no known intrinsics were given), ``refine``, ``fixed``.
+#: The principal point in bundle adjustment (``principal_point.py``): ``auto`` (mapped fixed, then refined
+#: in a final adjustment and kept only where the photos determine it; no test without PRINCIPAL_POINT_MIN_IMAGES
+#: photos per camera or with known intrinsics), ``refine`` (the mapper refines it throughout), ``fixed``.
 PRINCIPAL_POINT_MODES = ("auto", "refine", "fixed")
-#: Photos per camera from which ``auto`` refines the principal point. COLMAP keeps it at the
+#: Photos per camera from which ``auto`` tests a refined principal point. COLMAP keeps it at the
 #: image centre: with few views of a camera it trades off against their poses. A camera seen
-#: by many photos pins it down, and a real lens's centre is off the image centre: fountain-P11's
+#: by many photos can pin it down, and a real lens's centre is off the image centre: fountain-P11's
 #: 11 photos of one camera (ground-truth principal point 15-17 px from the centre at 3072 px)
 #: map with median rotation / translation-direction errors of 0.234 / 0.333 deg with it fixed,
-#: 0.096 / 0.084 deg refined (SIFT through `sekd bench sfm`; docs/reconstruction.md).
+#: 0.096 / 0.084 deg refined (SIFT through `sekd bench sfm`; docs/reconstruction.md). Whether the
+#: photos of a camera determine it is then decided on the model (``principal_point.try_refinement``).
 PRINCIPAL_POINT_MIN_IMAGES = 8
 
 
@@ -65,16 +67,25 @@ def images_per_camera(database: str | Path) -> list[int]:
 
 
 def refines_principal_point(camera: CameraConfig, per_camera: list[int]) -> bool:
-    """Whether bundle adjustment should refine the principal point, for ``per_camera`` images per camera.
+    """Whether the mapper's bundle adjustments refine the principal point while mapping: only for ``refine``.
 
-    ``auto``: when every camera has at least PRINCIPAL_POINT_MIN_IMAGES images (COLMAP's option
-    holds for all cameras at once, and a camera of a few photos cannot fix its principal point)
-    and no known intrinsics were given.
+    ``auto`` maps with it fixed and may refine it in a final adjustment (``tries_principal_point``).
     """
     check_principal_point_mode(camera.principal_point)
-    if camera.principal_point != "auto":
-        return camera.principal_point == "refine"
-    return not camera.params and bool(per_camera) and min(per_camera) >= PRINCIPAL_POINT_MIN_IMAGES
+    return camera.principal_point == "refine"
+
+
+def tries_principal_point(camera: CameraConfig, per_camera: list[int]) -> bool:
+    """Whether ``auto`` refines the principal point of the mapped models in a final, tested adjustment
+    (``principal_point.py``), for ``per_camera`` images per camera.
+
+    When every camera has at least PRINCIPAL_POINT_MIN_IMAGES images (COLMAP's option holds for all
+    cameras at once, and a camera of a few photos cannot fix its principal point) and no known
+    intrinsics were given.
+    """
+    check_principal_point_mode(camera.principal_point)
+    return (camera.principal_point == "auto" and not camera.params and bool(per_camera)
+            and min(per_camera) >= PRINCIPAL_POINT_MIN_IMAGES)
 
 
 def camera_model_names() -> list[str]:

@@ -106,7 +106,10 @@ def mapper_type_of(options) -> str:
 
 
 def set_principal_point_refinement(options, refine: bool) -> None:
-    """Let bundle adjustment refine the cameras' principal points (or keep them fixed) in any mapper's ``options``."""
+    """Let bundle adjustment refine the cameras' principal points (or keep them fixed) in any mapper's ``options``.
+
+    ``--principal-point auto`` keeps them fixed while mapping and decides afterwards (``principal_point``).
+    """
     if mapper_type_of(options) == "global":
         options.mapper.bundle_adjustment.refine_principal_point = refine
     else:  # incremental, or the incremental mapping of each hierarchical cluster
@@ -192,19 +195,36 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
         shutil.rmtree(scratch, ignore_errors=True)  # models are written by write_models, in our layout
 
 
+def run_child(command: list[str], request: dict, scratch: Path, what: str, progress: bool = True) -> None:
+    """Run ``command``, a child of the mapper's protocol (``mapper_worker``), on ``request``; SekdError if it fails.
+
+    The bar shows the elapsed time; Ctrl-C (or SIGTERM) kills the child at once and raises
+    Interrupted. ``what`` names the work in the bar and the messages (e.g. "principal point test").
+    """
+    bar = _MapperProgress(0, what, progress)
+    try:
+        _run_child({**request, "parent_pid": os.getpid()}, scratch, bar, command, what)
+    finally:
+        bar.bar.close()
+
+
 def _seed(options) -> int:
     return int(getattr(options, "incremental_options", options).random_seed)
 
 
-def _run_child(request: dict, scratch: Path, bar: _MapperProgress) -> None:
-    """Start the worker, forward its events to ``bar``; kill it on Ctrl-C; SekdError if it fails."""
+def _run_child(request: dict, scratch: Path, bar: _MapperProgress, command: list[str] | None = None,
+               what: str | None = None) -> None:
+    """Start the worker (``command``, default the mapper's), forward its events to ``bar``; kill it on Ctrl-C;
+    SekdError if it fails."""
+    doing = "mapping" if what is None else f"mapping ({what})"
+    command, what = command or WORKER_COMMAND, what or f"the {request['mapper_type']} mapper"
     stderr_path = scratch / "stderr.txt"
     child = None
     try:
         # Ctrl-C / SIGTERM are held back while the child starts and delivered once it is
         # known, so a signal during the start cannot leave a mapper running with no owner.
         with _signals_held(), open(stderr_path, "wb") as stderr:
-            child = subprocess.Popen(WORKER_COMMAND, stdin=subprocess.PIPE,
+            child = subprocess.Popen(command, stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=stderr, cwd=os.getcwd())
         try:
             child.stdin.write(pickle.dumps(request))
@@ -216,7 +236,8 @@ def _run_child(request: dict, scratch: Path, bar: _MapperProgress) -> None:
         # Ctrl-C, or SIGTERM (raised as KeyboardInterrupt): the mapper's work is worthless
         # without us, so kill it at once rather than wait for it to look for a signal.
         _kill(child)
-        raise Interrupted(f"interrupted while mapping: {request['database']} (features and matches) is kept; "
+        kept = f"{request['database']} (features and matches)" if "database" in request else "the database"
+        raise Interrupted(f"interrupted while {doing}: {kept} is kept; "
                           "run the same command again to map again") from None
     except BaseException:
         _kill(child)
@@ -224,7 +245,8 @@ def _run_child(request: dict, scratch: Path, bar: _MapperProgress) -> None:
     if child.returncode != 0:
         detail = stderr_path.read_text(errors="replace").strip().splitlines()
         how = f"exit code {child.returncode}" if child.returncode > 0 else f"killed by signal {-child.returncode}"
-        raise SekdError(f"the {request['mapper_type']} mapper failed on {request['database']} ({how}): "
+        where = f" on {request['database']}" if "database" in request else ""
+        raise SekdError(f"{what} failed{where} ({how}): "
                         f"{detail[-1] if detail else 'no message'}; COLMAP's log has the details (out of memory "
                         "if killed by signal 9)")
 

@@ -42,9 +42,7 @@ from .database import (
     CameraConfig,
     check_principal_point_mode,
     create_database,
-    images_per_camera,
     parse_camera_params,
-    refines_principal_point,
     two_view_options,
     verify_matches,
 )
@@ -56,9 +54,9 @@ from .mapping import (
     registered_names,
     resolve_mapper_type,
     run_mapper,
-    set_principal_point_refinement,
     write_models,
 )
+from .principal_point import PrincipalPointPlan, plan_principal_point
 from .refine import RefineConfig, refine_keypoints, refine_summary
 from .report import (
     ReconstructionError,
@@ -223,7 +221,8 @@ def _run(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSet
     with colmap_log(out / "colmap.log") as log:
         with timer("database"):
             create_database(image_dir, keypoints, matches, pairs, database, config.camera)
-        stats["principal_point"] = _principal_point(config, database, options)
+        principal_point = _principal_point(config, database, options)
+        stats["principal_point"], stats["principal_point_decision"] = principal_point.outcome, principal_point.details()
         with timer("verification"):
             verify_matches(database, two_view, settings.num_threads or -1)
         match_stats = match_statistics(database, min_num_matches(options))
@@ -231,6 +230,8 @@ def _run(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSet
         check_enough_matches(match_stats, database)
         with timer("mapping"):
             models = run_mapper(database, image_dir, options, settings.progress, log_prefix=log_prefix(log))
+            models = principal_point.settle(models, out, options, settings.progress, log_prefix(log))
+        stats["principal_point"], stats["principal_point_decision"] = principal_point.outcome, principal_point.details()
     return _finish(models, match_stats, options, out, stats, database)
 
 
@@ -248,18 +249,11 @@ def _checked_options(image_dir: Path, config: ReconstructConfig, features: str |
     return options, two_view
 
 
-def _principal_point(config: ReconstructConfig, database: Path, options) -> str:
-    """Set the mapper's principal-point refinement from ``config.camera`` and the database's cameras; returns
-    ``refined`` / ``fixed`` (for stats.json). An explicit ``--mapper ...refine_principal_point=...`` wins."""
-    if any("refine_principal_point" in assignment for assignment in config.mapper):
-        return "set by --mapper"
-    per_camera = images_per_camera(database)
-    refine = refines_principal_point(config.camera, per_camera)
-    set_principal_point_refinement(options, refine)
-    logger.info("principal point %s in bundle adjustment (%s; %d camera(s), fewest photos per camera %d)",
-                "refined" if refine else "fixed at the image centre", config.camera.principal_point,
-                len(per_camera), min(per_camera, default=0))
-    return "refined" if refine else "fixed"
+def _principal_point(config: ReconstructConfig, database: Path, options) -> PrincipalPointPlan:
+    """The principal-point plan of ``config.camera`` on the database's cameras (``principal_point.py``: ``auto``
+    maps with it fixed, then ``settle`` keeps a refined model only where the photos determine it); sets the
+    mapper's refinement in ``options``. An explicit ``--mapper ...refine_principal_point=...`` wins."""
+    return plan_principal_point(config.camera, config.mapper, database, options)
 
 
 def _num_photos(image_dir: Path, features: str | Path | None) -> int:

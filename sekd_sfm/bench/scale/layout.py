@@ -1,5 +1,13 @@
-"""The scene's layout (overview in ``scene.py``): the block of box buildings and towers, the
-pavement tiles in front of them, and the cameras walking around it. World units are metres, z up."""
+"""The scene's layout (overview in ``scene.py``). World units are metres, z up.
+
+* ``block`` (the default): the block of box buildings and towers, the pavement tiles in front of
+  them, and the cameras walking around it;
+* ``ring``: a turntable series: a few textured boxes on a paved plate, photographed from a circle
+  of cameras around them, all looking at the object's middle (``Ring``, ``build_ring_faces``,
+  ``make_ring_cameras``). With a long lens (``hfov_deg`` about 24: 640 px at a focal length of
+  1,500 px) the principal point and the camera rotations are nearly interchangeable there
+  (``sfm/principal_point.py``).
+"""
 from __future__ import annotations
 
 import math
@@ -13,6 +21,8 @@ from ...errors import SekdError
 from .geometry import Camera, Face
 
 MIN_PERIMETER = 200.0  # keeps the block at least ~24 m wide, so buildings of opposite sides never meet
+#: What ``SceneConfig.layout`` accepts.
+LAYOUTS = ("block", "ring")
 
 
 @dataclass
@@ -28,8 +38,13 @@ class SceneConfig:
     jpeg_quality: int = 92
     seed: int = 0
     textures: str | None = None    # folder of photos; default $SEKD_SHARED/data/train/coco
+    #: ``block`` (a walk around a city block) or ``ring`` (a turntable: cameras on a circle around an
+    #: object; ``spacing``, ``distance`` and ``distractor_fraction`` do not apply, there are no distractors).
+    layout: str = "block"
 
     def __post_init__(self):
+        if self.layout not in LAYOUTS:
+            raise SekdError(f"unknown scene layout {self.layout!r}; choose from {', '.join(LAYOUTS)}")
         if self.num_images < 2:
             raise SekdError(f"a scene needs at least 2 images, got {self.num_images}")
         if self.image_size < 32:
@@ -200,5 +215,91 @@ def make_cameras(block: Block, config: SceneConfig, count: int) -> list[Camera]:
         jitter, _ = cv2.Rodrigues(np.array([pitch, yaw, roll]))
         R_wc = R_wc @ jitter
         R = R_wc.T
+        cameras.append(Camera(K.copy(), R, -R @ center, w, h))
+    return cameras
+
+
+# ----------------------------------------------------------------------------- the ring (turntable) layout
+
+#: The ring's object: boxes as (centre x, centre y, width along x, depth along y, height), metres, standing on
+#: a plate of RING_PLATE x RING_PLATE m; a main block with three smaller ones around it, so the object hides
+#: parts of itself from most directions, as a real object on a turntable does.
+RING_BOXES = ((0.0, 0.0, 2.0, 1.6, 2.4), (1.6, 0.9, 1.0, 1.2, 1.4), (-1.7, -1.0, 1.2, 0.9, 1.0),
+              (-0.9, 1.4, 0.8, 0.8, 1.8))
+RING_PLATE = 7.0
+#: The point every camera of the ring looks at (the object's middle) and the radius (m) of the sphere
+#: around it that fills the short side of the photos: the camera distance follows from the field of view.
+RING_TARGET = np.array([0.0, 0.0, 1.0])
+RING_OBJECT_RADIUS = 2.2
+#: Elevation of the ring's cameras above the target (deg): a turntable photographed from above.
+RING_ELEVATION_DEG = 20.0
+
+
+class Ring:
+    """The ring's extent: ``distance`` (camera to target, m), half extents ``hx`` = ``hy`` of the plate,
+    ``perimeter`` of the camera circle (the names of ``Block``'s, which scene.json records)."""
+
+    def __init__(self, config: SceneConfig):
+        w = config.image_size
+        f = 0.5 * w / math.tan(math.radians(config.hfov_deg) / 2)
+        half_short_side = math.atan(0.5 * round(w * 3 / 4) / f)
+        self.focal = f
+        self.distance = RING_OBJECT_RADIUS / math.tan(half_short_side)
+        self.hx = self.hy = RING_PLATE / 2
+        self.perimeter = 2 * math.pi * self.distance * math.cos(math.radians(RING_ELEVATION_DEG))
+
+    def texels_per_metre(self) -> int:
+        """Generated-texture density of the ring: the photos' pixels per metre at the target, at least the block's."""
+        return max(48, math.ceil(self.focal / self.distance))
+
+
+def _box_faces(x: float, y: float, width: float, depth: float, height: float, rng, textures: int, sizes) -> list[Face]:
+    """The four walls (counter-clockwise from above, each facing out) and the top of a box standing on z = 0."""
+    corners = [(x - width / 2, y - depth / 2), (x + width / 2, y - depth / 2), (x + width / 2, y + depth / 2),
+               (x - width / 2, y + depth / 2)]
+    faces = []
+    for (ax, ay), (bx, by) in pairwise([*corners, corners[0]]):
+        length = math.hypot(bx - ax, by - ay)
+        faces.append(_wall((ax, ay), ((bx - ax) / length, (by - ay) / length), length, height, rng, textures, sizes))
+    # Top: u = +x, v = -y, so the normal v x u points up; its top-left corner (seen from above) is at max y.
+    top = _vec(corners[3], height)
+    faces.append(_textured(top, _vec((1, 0)), _vec((0, -1)), width, depth, rng, textures, sizes, (0.7, 1.25)))
+    return faces
+
+
+def build_ring_faces(rng: np.random.Generator, textures: int, sizes) -> tuple[list[Face], list[Face]]:
+    """``(object faces, plate tiles)`` of the ring: the boxes of RING_BOXES and a plate of 4 x 4 ground tiles."""
+    faces = [face for box in RING_BOXES for face in _box_faces(*box, rng, textures, sizes)]
+    tile = RING_PLATE / 4
+    plate = []
+    for i in range(4):
+        for j in range(4):
+            x0, y1 = -RING_PLATE / 2 + i * tile, -RING_PLATE / 2 + (j + 1) * tile
+            plate.append(_textured(_vec((x0, y1)), _vec((1, 0)), _vec((0, -1)), tile, tile, rng, textures, sizes,
+                                   (0.45, 0.8)))
+    return faces, plate
+
+
+def make_ring_cameras(ring: Ring, config: SceneConfig, count: int) -> list[Camera]:
+    """``count`` cameras evenly around the target (with 1 % distance and ~0.5 deg aiming jitter), looking at it."""
+    w = config.image_size
+    h = round(w * 3 / 4)
+    K = np.array([[ring.focal, 0, (w - 1) / 2], [0, ring.focal, (h - 1) / 2], [0, 0, 1]])
+    cameras = []
+    for i in range(count):
+        rng = np.random.default_rng([config.seed, 1, i])
+        azimuth = 2 * math.pi * i / count + math.radians(rng.normal(0, 0.5))
+        elevation = math.radians(RING_ELEVATION_DEG + rng.normal(0, 1.0))
+        distance = ring.distance * (1 + rng.normal(0, 0.01))
+        direction = np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
+                              math.sin(elevation)])
+        center = RING_TARGET + distance * direction
+        forward = -direction
+        right = np.cross(forward, _UP)
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        R_wc = np.stack([right, down, forward], axis=1)
+        jitter, _ = cv2.Rodrigues(np.radians(np.clip(rng.normal(0, [0.5, 0.5, 1.0]), -2, 2)))
+        R = (R_wc @ jitter).T
         cameras.append(Camera(K.copy(), R, -R @ center, w, h))
     return cameras

@@ -2,7 +2,8 @@
 
 For each size N, in ``OUT/n<N>/``:
 
-1. ``scene/``: a generated scene of N photos (``scene.SceneConfig``; about 3% distractors).
+1. ``scene/``: a generated scene of N photos (``scene.SceneConfig``; about 3% distractors): the
+   city block, or with ``layout="ring"`` a turntable ring around an object (no distractors).
 2. ``ours/``: ``sfm.reconstruct.reconstruct`` with its defaults (whatever pair selection,
    mapper and camera sharing they choose), run in its own process; its stages (extract,
    pairs, match, database, verification, mapping) are cut out of one sampled timeline.
@@ -12,7 +13,7 @@ For each size N, in ``OUT/n<N>/``:
    from one camera, so this pipeline is told so (``CameraMode.SINGLE``).
 
 Per stage: wall time, peak RSS, bytes written (``measure``). Per pipeline: registered
-scene photos, registered distractors, pose AUC@5/10/20 deg over all pairs of scene photos
+scene photos, registered distractors, models, pose AUC@5/10/20 deg over all pairs of scene photos
 (relative rotation and translation direction against the generated cameras, the larger
 of the two; a pair with an unregistered photo counts as a failure), and the same over
 the truly co-visible pairs. Pairs are scored against two ground truths (``scene.py``): every
@@ -57,6 +58,9 @@ class ScaleConfig:
 
     sizes: tuple[int, ...] = (250, 500, 1000)
     image_size: int = 640
+    #: The scenes' layout (``scene.SceneConfig.layout``): ``block`` or ``ring``, and the cameras' field of view.
+    layout: str = "block"
+    hfov_deg: float = 60.0
     spacing: float = 1.5
     seed: int = 0
     baseline: bool = True
@@ -162,8 +166,14 @@ def pair_errors(estimated: dict, truth: dict, names: list[str], pairs: np.ndarra
 
     Pairs with an unregistered image get ``inf``. ``truth`` maps name -> scene.Camera.
     """
+    return np.maximum(*pair_rotation_translation_errors(estimated, truth, names, pairs))
+
+
+def pair_rotation_translation_errors(estimated: dict, truth: dict, names: list[str],
+                                     pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rotation, translation-direction)`` errors (deg) of the relative pose of each index pair (``pair_errors``)."""
     if len(pairs) == 0:
-        return np.zeros(0)
+        return np.zeros(0), np.zeros(0)
     Rg = np.stack([truth[n].R for n in names])
     tg = np.stack([truth[n].t for n in names])
     known = np.array([n in estimated for n in names])
@@ -182,14 +192,14 @@ def pair_errors(estimated: dict, truth: dict, names: list[str], pairs: np.ndarra
     with np.errstate(invalid="ignore", divide="ignore"):
         cos_t = np.where(norms > 0, np.einsum("pa,pa->p", tr_e, tr_g) / norms, -1.0)
     trans = np.degrees(np.arccos(np.clip(cos_t, -1, 1)))
-    errors = np.maximum(rot, trans)
-    errors[~(known[i] & known[j])] = np.inf
-    return errors
+    unknown = ~(known[i] & known[j])
+    rot[unknown], trans[unknown] = np.inf, np.inf
+    return rot, trans
 
 
 #: What evaluate_model measures of a model (None where no model was made).
-MODEL_FIELDS = ("registered", "median_pose_error_deg", "auc5", "auc5_covisible", "auc10", "auc10_covisible",
-                "auc20", "auc20_covisible")
+MODEL_FIELDS = ("registered", "median_pose_error_deg", "median_rotation_error_deg", "auc5", "auc5_covisible",
+                "auc10", "auc10_covisible", "auc20", "auc20_covisible")
 
 
 def evaluate_model(model_dir: Path, scene: dict, covisible: dict) -> dict:
@@ -201,11 +211,13 @@ def evaluate_model(model_dir: Path, scene: dict, covisible: dict) -> dict:
     m = len(names)
     all_pairs = np.array([(a, b) for a in range(m) for b in range(a + 1, m)], np.int64).reshape(-1, 2)
     covis = np.array(sorted(tuple(sorted(index[n] for n in p)) for p in covisible), np.int64).reshape(-1, 2)
-    errors, errors_covis = pair_errors(estimated, truth, names, all_pairs), pair_errors(estimated, truth, names, covis)
-    finite = errors[np.isfinite(errors)]
+    rotation, translation = pair_rotation_translation_errors(estimated, truth, names, all_pairs)
+    errors, errors_covis = np.maximum(rotation, translation), pair_errors(estimated, truth, names, covis)
+    finite = np.isfinite(errors)
     result = {"registered": sum(n in estimated for n in names), "scene_images": m,
               "registered_distractors": sorted(set(estimated) & set(scene["distractors"])),
-              "median_pose_error_deg": float(np.median(finite)) if finite.size else None}
+              "median_pose_error_deg": float(np.median(errors[finite])) if finite.any() else None,
+              "median_rotation_error_deg": float(np.median(rotation[finite])) if finite.any() else None}
     for limit in (5, 10, 20):
         result[f"auc{limit}"] = pose_auc(errors.tolist(), limit)
         result[f"auc{limit}_covisible"] = pose_auc(errors_covis.tolist(), limit)
@@ -276,6 +288,7 @@ def run_ours(scene_dir: Path, work: Path, config, num_threads: int | None) -> di
             "cpu_s": round(sum(s["cpu_s"] for s in stages.values()), 2),
             "peak_rss_mb": round(m.peak_rss / MB, 1), "written_mb": round(m.bytes_written / MB, 2),
             "disk_mb": round(folder_bytes(work) / MB, 2), "failure": failure, "matches": stats.get("matches"),
+            "models": len(stats.get("models") or []), "principal_point": stats.get("principal_point"),
             "config": stats.get("config"), "features": features, "model": str(work / "model")}
 
 
@@ -301,17 +314,18 @@ def run_pycolmap(scene_dir: Path, work: Path, pairs: list[tuple[str, str]], num_
              ("verify", _colmap_verify, (database, num_threads))]
     if map_stage:
         steps.append(("map", _colmap_map, (database, images, str(work / "model"), seed)))
-    stages, failure, wall, cpu, peak, written = {}, None, 0.0, 0.0, 0, 0
+    stages, failure, wall, cpu, peak, written, models = {}, None, 0.0, 0.0, 0, 0, None
     for stage, target, args in steps:
         m = run_measured(target, args, work / f"measure-{stage}.json")
         stages[stage] = _stage_record(m)
+        models = (m.result or {}).get("models", models)
         wall, cpu, peak, written = wall + m.wall_s, cpu + m.cpu_s, max(peak, m.peak_rss), written + m.bytes_written
         if m.error:
             failure = f"{stage}: {m.error}"
             break
     return {"stages": stages, "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "peak_rss_mb": round(peak / MB, 1),
             "written_mb": round(written / MB, 2), "disk_mb": round(folder_bytes(work) / MB, 2), "failure": failure,
-            "matcher": "exhaustive" if exhaustive else "imported pairs", "model": str(work / "model"),
+            "matcher": "exhaustive" if exhaustive else "imported pairs", "model": str(work / "model"), "models": models,
             "skipped": [] if map_stage else ["map"]}
 
 
@@ -335,6 +349,7 @@ def reusable_baseline(previous: dict | None, work: Path, pairs: list[tuple[str, 
         return None
     settings = previous.get("settings", {})
     same = all(settings.get(k) == getattr(config, k) for k in ("image_size", "spacing", "seed", "textures", "min_overlap"))
+    same = same and (settings.get("layout", "block"), settings.get("hfov_deg", 60.0)) == (config.layout, config.hfov_deg)
     versions = settings.get("versions", {})
     if not same or versions.get("pycolmap") != package_versions().get("pycolmap"):
         return None
@@ -379,7 +394,8 @@ def run_size(out: Path, size: int, config: ScaleConfig, reconstruct_config, prev
     """
     scene_dir = out / "scene"
     scene_config = SceneConfig(num_images=size, image_size=config.image_size, spacing=config.spacing,
-                               seed=config.seed, textures=config.textures)
+                               seed=config.seed, textures=config.textures, layout=config.layout,
+                               hfov_deg=config.hfov_deg)
     other = Path(config.baseline_from) / out.name if config.baseline_from else None
     if other is not None and not scene_dir.exists():
         link_scene(other / "scene", scene_dir, scene_config)
@@ -522,13 +538,18 @@ def _f(value, digits: int = 1) -> str:
 
 def scale_markdown(report: dict) -> str:
     """The benchmark's tables: one summary row per size and pipeline, stages per size, growth exponents."""
-    lines = [("Generated city-block scenes (N photos including ~3% distractors); our pipeline with its "
+    rings = any((r.get("scene") or {}).get("layout") == "ring" for r in report["results"])
+    scenes = ("Generated turntable rings (N photos of an object from a circle of cameras, no distractors)" if rings
+              else "Generated city-block scenes (N photos including ~3% distractors)")
+    lines = [(f"{scenes}; our pipeline with its "
               "defaults against pycolmap's SIFT pipeline on the same pairs. AUC over all pairs of scene "
-              "photos (an unregistered photo fails its pairs) and over the truly co-visible pairs."), "",
+              "photos (an unregistered photo fails its pairs) and over the truly co-visible pairs; models: "
+              "how many the mapper made (the scores are the largest's); pose error: the larger of the rotation "
+              "and translation-direction errors of a pair, medians over the pairs of registered photos."), "",
              ("| N | pipeline | pairs | retrieval recall@20 | pair recall (matchable / all co-visible) | registered "
-              "| distractors registered | AUC@5 | AUC@5 co-visible "
-              "| median pose err (deg) | wall (s) | CPU (s) | peak RSS (MB) | written (MB) |"),
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| models | distractors registered | AUC@5 | AUC@5 co-visible "
+              "| median pose err (deg) | median rot. err (deg) | wall (s) | CPU (s) | peak RSS (MB) | written (MB) |"),
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["results"]:
         for name, label in (("ours", "ours"), ("pycolmap", "pycolmap SIFT")):
             if name not in r:
@@ -540,8 +561,11 @@ def scale_markdown(report: dict) -> str:
             mapped = p["registered"] is not None  # a baseline stopped before mapping has no model
             registered = f"{p['registered']}/{p['scene_images']}" if mapped else "-"
             distractors = f"{len(p['registered_distractors'])}/{len(r['distractors'])}" if mapped else "-"
-            lines.append(f"| {r['size']} | {label} | {pr['pairs']} | {recall} | {registered} | {distractors} "
+            models = p.get("models")
+            lines.append(f"| {r['size']} | {label} | {pr['pairs']} | {recall} | {registered} "
+                         f"| {'-' if models is None or not mapped else models} | {distractors} "
                          f"| {_f(p['auc5'], 3)} | {_f(p['auc5_covisible'], 3)} | {_f(p['median_pose_error_deg'], 2)} "
+                         f"| {_f(p.get('median_rotation_error_deg'), 2)} "
                          f"| {_f(p['wall_s'])} | {_f(p.get('cpu_s'))} | {_f(p['peak_rss_mb'], 0)} "
                          f"| {_f(p['written_mb'])} |"
                          + (f" failure: {p['failure']}" if p.get("failure") else "")

@@ -1,4 +1,5 @@
-"""A large scene with known cameras: a city block of box buildings textured with photos.
+"""A large scene with known cameras: a city block of box buildings textured with photos
+(``SceneConfig(layout="block")``, the default), or a turntable ring (``layout="ring"``, below).
 
 Layout (``layout.py``; world units are metres, z up): a rectangular block, twice as long as
 wide, whose perimeter grows with the number of photos. Along each side stand box buildings
@@ -22,6 +23,14 @@ facades, 1.5-1.7 m high), looking at the buildings with small yaw / pitch / roll
 and each photo gets its own exposure (gain and gamma) and sensor noise
 (``evaluation.samplers.expose_u8``). A few unrelated photos (distractors, never used as
 textures) are mixed in at random positions.
+
+The ring (``layout.py``: ``Ring``, ``build_ring_faces``, ``make_ring_cameras``): a few box
+"buildings" (the largest 2 x 1.6 x 2.4 m) on a 7 x 7 m paved plate, photographed by ``num_images``
+cameras evenly spaced on a circle around them, 20 deg above their middle and looking at it, at the
+distance where the object fills the photos' short side (0.5 deg aiming and 1 % distance jitter, no
+distractors). Its faces take photo textures and grain as the block's, its plate generated pavement,
+both at the photos' pixels per metre. With ``hfov_deg=24`` at 640 px (focal length 1,505 px) it is a
+long lens around one object, where the principal point is not observable (``sfm/principal_point.py``).
 
 Rendering is exact (``rendering.py``: each face by the homography of its plane, with a depth
 test). Pixel coordinates follow OpenCV (integer = pixel centre); COLMAP's convention puts the
@@ -69,7 +78,17 @@ from .covisibility import (
     write_covisibility,
 )
 from .geometry import NEAR, Camera, Face
-from .layout import MIN_PERIMETER, Block, SceneConfig, build_faces, make_cameras
+from .layout import (
+    LAYOUTS,
+    MIN_PERIMETER,
+    Block,
+    Ring,
+    SceneConfig,
+    build_faces,
+    build_ring_faces,
+    make_cameras,
+    make_ring_cameras,
+)
 from .rendering import candidate_faces, render, render_layers
 from .texturing import (
     GRAIN_SCALE,
@@ -87,12 +106,12 @@ from .texturing import (
 )
 
 __all__ = [
-    "FORMAT", "GRAIN_SCALE", "GRAIN_TEXELS", "MATCHABLE_ANGLE_DEG", "MIN_TEXTURED", "NEAR", "PAVEMENT_TEXELS",
-    "Block", "Camera", "Face", "Layout", "SceneConfig", "SurfaceView", "Textures",
-    "add_grain", "apparent_size", "assign_textures", "build_faces", "covisibility_counts", "generate_scene",
-    "grain_texture", "layout_scene", "make_cameras", "pair_ray_angles", "pavement_texture", "photo_paths",
-    "pixel_overlap", "read_covisibility", "read_scene", "render", "render_layers", "texture_cells",
-    "textured_fraction", "write_covisibility",
+    "FORMAT", "GRAIN_SCALE", "GRAIN_TEXELS", "LAYOUTS", "MATCHABLE_ANGLE_DEG", "MIN_TEXTURED", "NEAR",
+    "PAVEMENT_TEXELS", "Block", "Camera", "Face", "Layout", "Ring", "SceneConfig", "SurfaceView", "Textures",
+    "add_grain", "apparent_size", "assign_textures", "build_faces", "build_ring_faces", "covisibility_counts",
+    "generate_scene", "grain_texture", "layout_scene", "make_cameras", "make_ring_cameras", "pair_ray_angles",
+    "pavement_texture", "photo_paths", "pixel_overlap", "read_covisibility", "read_scene", "render", "render_layers",
+    "texture_cells", "textured_fraction", "write_covisibility",
 ]
 
 logger = logging.getLogger("sekd")
@@ -141,7 +160,7 @@ def _fit(photo: np.ndarray, width: int, height: int) -> np.ndarray:
 class Layout:
     """Everything a scene's photos are rendered from (``layout_scene``)."""
 
-    block: Block
+    block: Block | Ring
     faces: list[Face]
     cameras: list[Camera]           # the scene photos' cameras, in name order
     textures: Textures
@@ -177,6 +196,8 @@ def layout_scene(config: SceneConfig) -> Layout:
     order = rng.permutation(len(paths))
     pool, texture_paths = [paths[i] for i in order[:DISTRACTOR_POOL]], [paths[i] for i in order[DISTRACTOR_POOL:]]
     textures = Textures(texture_paths)
+    if config.layout == "ring":
+        return _layout_ring(config, rng, textures, texture_paths, pool)
     num_distractors = min(DISTRACTOR_POOL, max(1, round(config.num_images * config.distractor_fraction)))
     num_scene = config.num_images - num_distractors
     if num_scene < 2:
@@ -202,6 +223,34 @@ def layout_scene(config: SceneConfig) -> Layout:
     distractor_slots = set(rng.choice(config.num_images, num_distractors, replace=False).tolist())
     names = [f"{i:05d}.jpg" for i in range(config.num_images)]
     return Layout(block, faces, cameras, textures, pool, names, distractor_slots, apparent)
+
+
+def _layout_ring(config: SceneConfig, rng: np.random.Generator, textures: Textures, texture_paths: list[Path],
+                 pool: list[Path]) -> Layout:
+    """The ring (turntable) scene of ``config``: boxes on a plate, every photo a scene photo (no distractors).
+
+    Textures as on the block: the object's faces take photo regions (the largest apparent faces
+    whole photos), with a grain of their own; the plate's tiles generated pavement. Generated
+    textures have the photos' pixels per metre at the object (``Ring.texels_per_metre``), so
+    they stay sharp under a long lens.
+    """
+    ring = Ring(config)
+    cameras = make_ring_cameras(ring, config, config.num_images)
+    objects, plate = build_ring_faces(rng, len(texture_paths), textures.sizes)
+    faces = objects + plate
+    cells = [texture_cells(textures.level(i, 0)) for i in range(len(texture_paths))]
+    apparent = apparent_size(faces, np.array([camera.center for camera in cameras]))
+    assign_textures(objects, textures.sizes[:len(texture_paths)], np.random.default_rng([config.seed, 3]), cells,
+                    priority=apparent[:len(objects)])
+    texels = ring.texels_per_metre()
+    for i, face in enumerate(faces):
+        size = (max(2, round(face.width * texels)), max(2, round(face.height * texels)))
+        if i >= len(objects):  # plate tiles: a pavement texture of their own
+            face.texture, face.crop = textures.add_generated("pavement", *size, (config.seed, 4, i)), (0, 0, *size)
+        else:
+            face.grain = textures.add_generated("grain", *size, (config.seed, 5, i))
+    names = [f"{i:05d}.jpg" for i in range(config.num_images)]
+    return Layout(ring, faces, cameras, textures, pool, names, set(), apparent)
 
 
 def generate_scene(output_dir: str | Path, config: SceneConfig, progress: bool = True) -> Path:
@@ -234,6 +283,7 @@ def generate_scene(output_dir: str | Path, config: SceneConfig, progress: bool =
     record = {"format": FORMAT, "config": _config_record(config), "faces": len(faces),
               "texture_density": layout.texture_density(),
               "block_m": [2 * block.hx, 2 * block.hy], "path_perimeter_m": block.perimeter,
+              **({"ring_distance_m": round(block.distance, 3)} if config.layout == "ring" else {}),
               "pixel_convention": "OpenCV (integer = pixel centre); COLMAP principal point = ours + 0.5",
               "distractors": sorted(names[i] for i in distractor_slots),
               "distractor_sources": {names[i]: pool[j].name for j, i in enumerate(sorted(distractor_slots))},
@@ -251,6 +301,8 @@ def generate_scene(output_dir: str | Path, config: SceneConfig, progress: bool =
 def _config_record(config: SceneConfig) -> dict:
     data = asdict(config)
     data.pop("textures")  # a local path; the photos are recorded by name
+    if data["layout"] == "block":
+        data.pop("layout")  # the block's record as before the ring existed: its scenes stay reusable
     return data
 
 
