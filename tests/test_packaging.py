@@ -23,13 +23,12 @@ import shutil
 import subprocess
 import sys
 import time
-import tomllib
 import zipfile
 from importlib import metadata
 from pathlib import Path
 
 import pytest
-
+import tomllib
 from conftest import ROOT, SHARED
 
 PACKAGE = "sekd_sfm"

@@ -17,7 +17,7 @@ def run_local(stage: Stage, parts: partstore.PartStore, on_error: OnError, *, pr
     bar = tqdm(total=len(stage.keys), unit=stage.unit, desc=stage.name, disable=not progress, dynamic_ncols=True)
     try:
         worker = stage.build()
-        for keys in calls(stage, stage.batches):
+        for keys in calls(stage.joinable, stage.batches):
             for key, arrays, error in worker(keys):
                 if arrays is None:
                     on_error(key, error)

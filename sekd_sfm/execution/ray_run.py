@@ -108,12 +108,13 @@ def _tasks(stage: Stage, workers: int, options: RayOptions) -> tuple[list[dict[s
     items are independent (extraction).
     """
     per_task = (options.images_per_task if stage.joinable else None) or task_size(stage.per_task, workers)
-    rows = [{"key": key, "batch": number} for number, batch in enumerate(stage.batches) for key in batch]
-    starts = [0]
-    for batch in stage.batches:
-        starts.append(starts[-1] + len(batch))
-    edges = starts[::per_task] + ([starts[-1]] if (len(starts) - 1) % per_task else [])
-    return [_columns(rows[a:b]) for a, b in zip(edges, edges[1:]) if b > a], per_task
+    tasks = []
+    for first in range(0, len(stage.batches), per_task):
+        group = stage.batches[first:first + per_task]
+        rows = [{"key": key, "batch": number} for number, batch in enumerate(group, first) for key in batch]
+        if rows:
+            tasks.append(_columns(rows))
+    return tasks, per_task
 
 
 def _node() -> str:
@@ -232,7 +233,7 @@ class _StageActor:
 
     def _compute(self, batches: list[list[str]]) -> tuple[list[tuple[str, dict]], dict[str, str]]:
         done, errors = [], {}
-        for keys in calls(_Joinable(self.joinable), batches):
+        for keys in calls(self.joinable, batches):
             results: list[Result] = list(self.worker(keys))
             if [key for key, _, _ in results] != keys:  # a worker must answer every key, in order
                 raise RuntimeError(f"{type(self.worker).__name__} answered other keys than it was given")
@@ -242,13 +243,6 @@ class _StageActor:
                 else:
                     done.append((key, arrays))
         return done, errors
-
-
-class _Joinable:
-    """The one field of ``Stage`` that ``stage.calls`` reads (an actor holds no whole stage)."""
-
-    def __init__(self, joinable: bool):
-        self.joinable = joinable
 
 
 def _split(keys: list[str], numbers: Iterable, skip: set[str]) -> list[list[str]]:

@@ -76,9 +76,10 @@ class Stage:
         return self.built if self.built is not None else self.worker(*self.args)
 
 
-def calls(stage: Stage, batches: list[list[str]]) -> Iterator[list[str]]:
-    """The keys of each worker call over ``batches``: all of them at once when joinable, else batch by batch."""
-    if stage.joinable:
+def calls(joinable: bool, batches: list[list[str]]) -> Iterator[list[str]]:
+    """The keys of each worker call over ``batches``: all of them at once when ``joinable`` (``Stage.joinable``),
+    else batch by batch."""
+    if joinable:
         joined = [key for batch in batches for key in batch]
         if joined:
             yield joined

@@ -18,7 +18,7 @@ from ..files.images import scale_mask
 from ..runtime import resolve_device, resolve_precision, tune_allocator
 from .fused import fused_or_none
 from .network import STRIDE, SEKDNet, use_fast_deconv
-from .tiling import detect_tiled, pixel_budget
+from .tiling import detect_tiled, pixel_budget, strongest
 
 _DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
 #: Multi-scale pyramid levels stop when a side would be this small or smaller (authors' rule).
@@ -106,11 +106,7 @@ def nms_keypoints(prob: torch.Tensor, radius: int, threshold: float, max_keypoin
     """
     pooled = max_filter(prob, radius)
     ys, xs = torch.nonzero((prob == pooled) & (prob > threshold), as_tuple=True)
-    scores = prob[ys, xs]
-    if max_keypoints and scores.numel() > max_keypoints:
-        scores, order = torch.topk(scores, max_keypoints, sorted=True)
-    else:
-        scores, order = torch.sort(scores, descending=True, stable=True)
+    scores, order = strongest(prob[ys, xs], max_keypoints)
     return torch.stack([xs[order], ys[order]], dim=1), scores
 
 

@@ -110,14 +110,21 @@ def in_core(xy: torch.Tensor, tile: Tile) -> torch.Tensor:
     return (x >= tile.x0) & (x < tile.x1) & (y >= tile.y0) & (y < tile.y1)
 
 
+def strongest(scores: torch.Tensor, max_keypoints: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``max_keypoints`` highest of ``scores`` (``N``; all when 0 or fewer), best first, and their indices.
+
+    One rule for a whole image's NMS (``inference.nms_keypoints``) and for the tiles' merge, so both order alike.
+    """
+    if max_keypoints and scores.numel() > max_keypoints:
+        return torch.topk(scores, max_keypoints, sorted=True)
+    return torch.sort(scores, descending=True, stable=True)
+
+
 def keep_best(kept: tuple[torch.Tensor, ...] | None, new: tuple[torch.Tensor, ...],
               max_keypoints: int) -> tuple[torch.Tensor, ...]:
     """The ``max_keypoints`` best of two sets ``(xy, scores, descriptors)`` by score (all when 0), best first."""
     xy, scores, desc = new if kept is None else (torch.cat([a, b]) for a, b in zip(kept, new))
-    if max_keypoints and scores.numel() > max_keypoints:
-        scores, order = torch.topk(scores, max_keypoints, sorted=True)
-    else:
-        scores, order = torch.sort(scores, descending=True, stable=True)
+    scores, order = strongest(scores, max_keypoints)
     return xy[order], scores, desc[order]
 
 
