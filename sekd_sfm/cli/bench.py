@@ -239,3 +239,7 @@ bench.add_command(bench_sfm.ratios)
 from . import bench_scale
 
 bench.add_command(bench_scale.scale)
+
+from . import bench_maps
+
+bench.add_command(bench_maps.maps)
