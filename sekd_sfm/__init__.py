@@ -56,6 +56,14 @@ _EXPORTS = {
     "reconstruct": "sekd_sfm.sfm.reconstruct",
     "relative_pose": "sekd_sfm.sfm.relpose",
     "RelposeConfig": "sekd_sfm.sfm.relpose",
+    # after the first model: extend (reconstruct(..., extend=ExtendOptions())), localize, triangulate, GPS
+    "ExtendOptions": "sekd_sfm.sfm.extend",
+    "localize": "sekd_sfm.sfm.localize",
+    "LocalizeConfig": "sekd_sfm.sfm.localize",
+    "triangulate": "sekd_sfm.sfm.triangulate",
+    "TriangulateConfig": "sekd_sfm.sfm.triangulate",
+    "GpsConfig": "sekd_sfm.sfm.georef",
+    "read_poses": "sekd_sfm.files.poses",
     "shared_dir": "sekd_sfm.runtime",
 }
 

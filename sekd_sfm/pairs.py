@@ -25,6 +25,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from .errors import SekdError
 from .files import features as ff
 from .files.atomic import write_atomic
@@ -51,6 +53,36 @@ class PairsConfig:
     file: str | None = None
     num_neighbors: int | None = None
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+
+
+@dataclass(frozen=True)
+class GpsNeighbors:
+    """Pairs from GPS: each image with its ``k`` nearest images within ``radius_m`` metres.
+
+    ``positions``: metric positions (x, y, z metres, e.g. local ENU) of the images that have one.
+    """
+
+    positions: dict[str, tuple[float, float, float]]
+    k: int = 10
+    radius_m: float = 100.0
+
+
+def gps_pairs(names: list[str], positions: dict[str, tuple[float, float, float]], k: int,
+              radius_m: float) -> list[Pair]:
+    """Each of ``names`` that has a position with its ``k`` nearest others within ``radius_m`` (metres).
+
+    Images without a position get no GPS pairs; ties are broken by name, so the pairs are deterministic.
+    """
+    located = sorted(n for n in names if n in positions)
+    if len(located) < 2 or k < 1:
+        return []
+    xyz = np.array([positions[n] for n in located], np.float64)  # (N, 3) metres
+    distances = np.linalg.norm(xyz[:, None] - xyz[None], axis=2)  # (N, N); N is a survey's photos, not millions
+    pairs = []
+    for i, a in enumerate(located):
+        order = np.lexsort((np.arange(len(located)), distances[i]))
+        pairs += [(a, located[j]) for j in order if j != i and distances[i, j] <= radius_m][:k]
+    return unique_pairs(pairs)
 
 
 def auto_mode(num_images: int, num_neighbors: int = DEFAULT_NEIGHBORS) -> str:
@@ -235,17 +267,20 @@ def describe_mode(config: PairsConfig, num_images: int) -> str:
 
 
 def make_pairs(features: str | Path, output: str | Path, config: PairsConfig | None = None, *,
-               progress: bool = True) -> Path:
+               progress: bool = True, gps: GpsNeighbors | None = None) -> Path:
     """Write the pairs among the images of the feature file ``features`` to ``output``. Returns ``output``.
 
     Images whose names a pairs file cannot hold are left out with one warning. An existing
-    ``output`` with exactly these pairs is left untouched (reused).
+    ``output`` with exactly these pairs is left untouched (reused). ``gps``: GPS neighbour
+    pairs added after those of ``config`` (``gps_pairs``); without it the pairs are ``config``'s only.
     """
     config = config or PairsConfig()
     features, output = Path(features), Path(output)
     ff.read_attrs(features)
     names, bad = split_writable(ff.list_keys(features))
     pairs = generate_pairs(names, config, features, progress)
+    if gps is not None:
+        pairs = unique_pairs(pairs + gps_pairs(names, gps.positions, gps.k, gps.radius_m))
     bad.update({n: r for pair in pairs for n in pair if (r := unwritable_reason(n))})  # from a --pairs-file
     warn_skipped(bad)
     pairs = [p for p in pairs if p[0] not in bad and p[1] not in bad]
@@ -254,5 +289,6 @@ def make_pairs(features: str | Path, output: str | Path, config: PairsConfig | N
         logger.info("%s: %d pairs, unchanged", output, len(pairs))
         return output
     write_pairs(pairs, output)
-    logger.info("%s: %d pairs (%s)", output, len(pairs), describe_mode(config, len(names)))
+    logger.info("%s: %d pairs (%s%s)", output, len(pairs), describe_mode(config, len(names)),
+                f" + GPS neighbours k={gps.k} within {gps.radius_m:g} m" if gps is not None else "")
     return output

@@ -404,3 +404,27 @@ def pair_recall(pairs, truth: dict[str, set[str]]) -> float:
     if not true_pairs:
         raise ValueError("the ground truth has no neighbour pairs")
     return len(true_pairs & {frozenset(p) for p in pairs}) / len(true_pairs)
+
+
+def query_neighbors(path: str | Path, queries: dict[str, np.ndarray], k: int, among: list[str] | None = None,
+                    block: int = 512) -> dict[str, list[str]]:
+    """The ``k`` images of the global file ``path`` most similar to each query (cosine, best first); read only.
+
+    ``queries``: name -> N x D local descriptors of photos that are not in the file (new photos to
+    localize), described with the file's own vocabulary; ``among``: only these stored images are
+    candidates (None: all). Nothing is written: the file and its vocabulary stay as they are.
+    """
+    with h5py.File(path, "r") as f:
+        if f.attrs.get("format") != FORMAT:
+            raise SekdError(f"{path}: not a sekd global descriptors file; delete it (it is made again) or rerun")
+        vocab = Vocabulary(*(f["vocabulary"][key][()] for key in ("mean", "projection", "centroids")))
+        stored = [n.decode() if isinstance(n, bytes) else n for n in f["names"][()]]
+        wanted = set(stored) if among is None else set(among)
+        rows = np.array([i for i, n in enumerate(stored) if n in wanted], dtype=np.int64)
+        names = list(queries)
+        if not len(rows) or not names:
+            return {n: [] for n in names}
+        q = torch.from_numpy(np.stack([vlad(queries[n], vocab) for n in names]))  # Q x (k*d), unit L2
+        sims = torch.cat([q @ _read_rows(f["descriptors"], rows[i:i + block]).T for i in range(0, len(rows), block)], 1)
+    best = sims.topk(min(k, len(rows)), dim=1).indices.tolist()
+    return {n: [stored[rows[j]] for j in best[i]] for i, n in enumerate(names)}

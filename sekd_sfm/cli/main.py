@@ -78,6 +78,10 @@ def _register() -> None:
     sekd.add_command(adapt_commands.adapt)
     from . import distill as distill_commands
     sekd.add_command(distill_commands.distill)
+    from . import localize as localize_command
+    sekd.add_command(localize_command.localize)
+    from . import triangulate as triangulate_command
+    sekd.add_command(triangulate_command.triangulate)
 
 
 _register()

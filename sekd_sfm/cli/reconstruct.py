@@ -180,10 +180,23 @@ def run_settings(execution: OptionValues, num_threads: int | None) -> RunSetting
 @click.option("--matches", "matches_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Use this existing match file instead of pairing and matching (needs --features); its pairs "
                    "are those of --pairs-file when given, else all it holds.")
+@click.option("--gps", type=click.Choice(("auto", "off", "pairs", "align")), default="auto", show_default=True,
+              help="Use the photos' EXIF GPS: pairs (each photo also matched with its 10 nearest photos within "
+                   "100 m), align (the model moved to a local east-north-up frame in metres about the photos' mean "
+                   "position, a robust similarity; OUTPUT/georef.json gives the origin and residuals), auto (both "
+                   "when at least 3 photos carry GPS), off. docs/georef.md.")
+@click.option("--extend", is_flag=True,
+              help="OUTPUT holds a model: add the photos of IMAGES it lacks (extracted, paired, matched and "
+                   "registered with the settings the model was built with) without moving its cameras or changing "
+                   "their ids; new points are triangulated, model/ replaced atomically. docs/extend.md.")
+@click.option("--extend-refine", is_flag=True,
+              help="With --extend: let the earlier cameras' poses and intrinsics move too (the mapper's bundle "
+                   "adjustments refine them with the new ones); by default they stay bitwise as they were.")
 @execution_options
 def reconstruct(images: Path, output: Path, extraction: OptionValues, num_threads: int | None, pairing: OptionValues,
                 matching: OptionValues, camera: OptionValues, mapping: OptionValues, features_file: Path | None,
-                matches_file: Path | None, execution: OptionValues) -> None:
+                matches_file: Path | None, gps: str, extend: bool, extend_refine: bool,
+                execution: OptionValues) -> None:
     """Reconstruct cameras and 3D points from the images below IMAGES (COLMAP SfM through pycolmap).
 
     \b
@@ -208,22 +221,60 @@ def reconstruct(images: Path, output: Path, extraction: OptionValues, num_thread
       sekd reconstruct photos/ -o out/ --conf sekd-fast           # a preset (`sekd confs` lists them)
       sekd reconstruct photos/ -o out/ --mapper-type global
       sekd reconstruct photos/ -o out/ --masks masks/             # masks/a.jpg.png: zero = ignore in photos/a.jpg
+      sekd reconstruct photos/ -o out/ --gps off                  # ignore EXIF GPS (default: use it when present)
       sekd reconstruct photos/ -o out/ --feature sift --camera-mode single --mapper mapper.init_min_tri_angle=8
       sekd reconstruct photos/ -o out/ --features hloc/feats.h5 --matches hloc/matches.h5 --pairs-file hloc/pairs.txt
+      sekd reconstruct photos/ -o out/ --extend                   # add photos copied into photos/ since the run
     """
     from sekd_sfm.sfm.reconstruct import ReconstructionError
     from sekd_sfm.sfm.reconstruct import reconstruct as run
 
     config = reconstruct_config(extraction, matching, camera, mapping, pairs=pairs_config(**pairing.values),
                                 conf=current_conf())
+    config.gps.mode = gps
     settings = run_settings(execution, num_threads)
     adapt_in_line(images, output, config.features, settings.num_threads, settings.progress)  # --adapt: new weights
+    groups = {"extraction": extraction, "pairing": pairing, "matching": matching, "camera": camera, "mapping": mapping}
+    if extend_refine and not extend:
+        raise click.UsageError("--extend-refine goes with --extend")
+    extension = _extend_options(groups, extend_refine) if extend else None
     try:
-        run(images, output, config, features=features_file, matches=matches_file, **settings.keywords())
+        run(images, output, config, features=features_file, matches=matches_file, **settings.keywords(),
+            extend=extension)
     except ReconstructionError:
         _echo_summary(output)
         raise
     _echo_summary(output)
+
+
+def _extend_options(groups: dict[str, OptionValues], refine: bool):
+    """``--extend``'s settings: the configuration fields the user set explicitly (each option's effect: the
+    fields that change when it is put back to its default), to be checked against the model's record."""
+    from dataclasses import asdict
+
+    from sekd_sfm.sfm.extend import ExtendOptions, flatten
+
+    ctx = click.get_current_context()
+    defaults = {p.name: p.get_default(ctx) for p in ctx.command.params}
+
+    def fields(values: dict[str, OptionValues], conf: str | None) -> dict:
+        g = values
+        built = reconstruct_config(g["extraction"], g["matching"], g["camera"], g["mapping"],
+                                   pairs=pairs_config(**g["pairing"].values), conf=conf)
+        return flatten(asdict(built))
+
+    conf = current_conf()
+    given_fields = fields(groups, conf)
+    given: dict = {}
+    variants = [(name, key) for name, group in groups.items() for key in group.explicit]
+    for name, key in variants:
+        group = groups[name]
+        reset = OptionValues({**group.values, key: defaults.get(key)}, group.explicit - {key})
+        other = fields({**groups, name: reset}, conf)
+        given.update({f: v for f, v in given_fields.items() if other.get(f) != v})
+    if conf:
+        given.update({f: v for f, v in given_fields.items() if fields(groups, None).get(f) != v})
+    return ExtendOptions(refine=refine, given=given)
 
 
 def _echo_summary(output: Path) -> None:

@@ -258,3 +258,56 @@ def verify_matches(database: str | Path, options=None, num_threads: int = -1) ->
     pycolmap.geometric_verification(str(database), verifier, pycolmap.ExistingMatchedPairingOptions(),
                                     options or two_view_options())
     return Path(database)
+
+
+def _sharing_key(mode: str, image_dir: Path, name: str) -> tuple:
+    """What photos of one camera share under the camera ``mode``: the camera_key (auto), nothing (single),
+    the folder (per-folder) or the photo itself (per-image, never shared)."""
+    if mode == "auto":
+        return camera_key(image_dir / name)
+    return {"single": ("all",), "per-folder": (str(Path(name).parent),)}.get(mode, ("image", name))
+
+
+def add_to_database(database: str | Path, image_dir: str | Path, features: str | Path, matches: str | Path,
+                    pairs: list[Pair], names: list[str], camera: CameraConfig | None = None) -> dict[str, int]:
+    """Add the photos ``names`` to an existing ``database``: cameras, images, keypoints, raw matches of ``pairs``.
+
+    What is there stays as it is (image and camera ids, keypoints, matches, verified geometries). A new
+    photo that shares a camera with photos already in the database (the sharing rule of ``camera.mode``:
+    ``camera_key`` for auto) joins that camera; the others get cameras as ``create_database`` would give
+    them. ``pairs`` are the pairs to add (each with at least one of ``names``). Returns the new ids by name.
+    """
+    pycolmap = require_pycolmap()
+    image_dir, database, camera = Path(image_dir), Path(database), camera or CameraConfig()
+    with open_database(database) as db:
+        old = {image.name: image for image in db.read_all_images()}
+    if set(names) & set(old):
+        raise SekdError(f"{database}: already holds {min(set(names) & set(old))}; only new photos are added")
+    existing: dict[tuple, int] = {}
+    for name, image in sorted(old.items()):
+        if (image_dir / name).is_file():
+            existing.setdefault(_sharing_key(camera.mode, image_dir, name), image.camera_id)
+    groups: dict[tuple, list[str]] = {}
+    for name in names:
+        groups.setdefault(_sharing_key(camera.mode, image_dir, name), []).append(name)
+    for key, group in groups.items():
+        if key in existing:  # joins the camera its photos already have (its intrinsics, as the model has them)
+            options = pycolmap.ImageReaderOptions()
+            options.camera_model, options.existing_camera_id = camera.model, existing[key]
+            pycolmap.import_images(str(database), str(image_dir), pycolmap.CameraMode.SINGLE, group, options)
+        else:
+            _import_images(database, image_dir, group, CameraConfig(camera.model, "per-image" if camera.mode ==
+                                                                    "per-image" else "single", camera.params,
+                                                                    camera.principal_point))
+    with open_database(database) as db:
+        ids = {image.name: image.image_id for image in db.read_all_images() if image.name in set(names)}
+        if len(ids) != len(names):
+            missing = sorted(set(names) - set(ids))
+            raise SekdError(f"{image_dir}: COLMAP did not import {', '.join(missing[:5])}; see colmap.log for why")
+        _write_keypoints(db, ids, Path(features))
+        every = {**{n: i.image_id for n, i in old.items()}, **ids}
+        wanted = [p for p in pairs if p[0] in every and p[1] in every and (p[0] in ids or p[1] in ids)]
+        for name0, name1, idx, _ in mf.iter_matches(matches, wanted):
+            db.write_matches(every[name0], every[name1], idx.astype(np.uint32))
+    logger.info("%s: %d images and %d pairs added", database, len(ids), len(wanted))
+    return ids

@@ -78,7 +78,8 @@ def run(request: dict) -> list:
     pycolmap.set_random_seed(max(0, int(request.get("seed", 0))))
     args = (str(request["database"]), str(request["image_dir"]), str(request["scratch"]), options)
     if kind == "incremental":
-        found = pycolmap.incremental_mapping(*args, initial_image_pair_callback=lambda: _event("pair"),
+        found = pycolmap.incremental_mapping(*args, input_path=request.get("input_path") or "",
+                                             initial_image_pair_callback=lambda: _event("pair"),
                                              next_image_callback=lambda: _event("image"))
     elif kind == "global":
         found = pycolmap.global_mapping(*args)

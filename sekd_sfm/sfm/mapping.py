@@ -166,7 +166,7 @@ def clean_scratch(folder: Path) -> None:
 
 
 def run_mapper(database: str | Path, image_dir: str | Path, options=None, progress: bool = True,
-               log_prefix: str | Path | None = None) -> list:
+               log_prefix: str | Path | None = None, input_model: str | Path | None = None) -> list:
     """Map ``database`` with the mapper of ``options``; the reconstructions found, largest first (may be empty).
 
     ``options`` is one of pycolmap's pipeline option objects (``mapper_options``; default:
@@ -174,6 +174,8 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
     from the options, so a run is repeatable. The mapper runs in a child process: Ctrl-C (or
     SIGTERM) kills it within a fraction of a second and raises Interrupted. COLMAP's log of
     the child goes to files ``<log_prefix><date>-<time>.<pid>`` (none without ``log_prefix``).
+    ``input_model``: a model to continue from (incremental mapper only; ``sekd reconstruct --extend``),
+    its image ids those of ``database``.
     """
     require_pycolmap()
     options = options if options is not None else mapper_options()
@@ -183,7 +185,8 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
     scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=Path(database).parent))
     request = {"mapper_type": kind, "options": options, "database": str(database), "image_dir": str(image_dir),
                "scratch": str(scratch / "work"), "result": str(scratch / "result"), "parent_pid": os.getpid(),
-               "seed": _seed(options), "log_prefix": str(log_prefix) if log_prefix else None}
+               "seed": _seed(options), "log_prefix": str(log_prefix) if log_prefix else None,
+               "input_path": str(input_model) if input_model else ""}
     bar = _MapperProgress(total, kind, progress)
     try:
         _run_child(request, scratch, bar)

@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -35,7 +33,7 @@ from ..files import matches as mf
 from ..files.images import list_images
 from ..files.locking import exclusive_lock
 from ..match import MatchConfig, match_features
-from ..pairs import PairsConfig, make_pairs, read_pairs, write_pairs
+from ..pairs import GpsNeighbors, PairsConfig, make_pairs, read_pairs, write_pairs
 from ..runtime import package_versions
 from .colmap import clean_logs, colmap_log, log_prefix, require_pycolmap
 from .database import (
@@ -46,6 +44,8 @@ from .database import (
     two_view_options,
     verify_matches,
 )
+from .extend import ExtendOptions, extend_model
+from .georef import GpsConfig, georeference, photo_names, plan_gps, write_georef
 from .mapping import (
     clean_scratch,
     mapper_options,
@@ -60,6 +60,7 @@ from .principal_point import PrincipalPointPlan, plan_principal_point
 from .refine import RefineConfig, refine_keypoints, refine_summary
 from .report import (
     ReconstructionError,
+    StageTimer,
     check_enough_matches,
     explain_models,
     explain_no_model,
@@ -105,6 +106,9 @@ class ReconstructConfig:
     #: Folder of masks (``--masks``; photo NAME's is ``masks/NAME.png``, zero = ignore; docs/masks.md), or None.
     #: Recorded in stats.json as ``config.masks``, where later commands (``sekd export``) find it.
     masks: str | None = None
+    #: EXIF GPS (``--gps``, georef.py): ``mode`` auto = GPS neighbour pairs + the model aligned to GPS in a
+    #: local ENU frame in metres, when at least 3 photos carry GPS.
+    gps: GpsConfig = field(default_factory=GpsConfig)
 
 
 @dataclass(frozen=True)
@@ -125,19 +129,6 @@ class RunSettings:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-class _Timer:
-    def __init__(self):
-        self.seconds: dict[str, float] = {}
-
-    @contextmanager
-    def __call__(self, stage: str):
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.seconds[stage] = round(time.perf_counter() - start, 3)
-
-
 def _config_dict(config: ReconstructConfig) -> dict:
     data = asdict(config)
     data["features"].pop("weights", None)  # a local path; the model's hash is in features.h5
@@ -147,7 +138,7 @@ def _config_dict(config: ReconstructConfig) -> dict:
 def reconstruct(image_dir: str | Path, output_dir: str | Path, config: ReconstructConfig | None = None, *,
                 overwrite: bool = False, num_threads: int | None = None, progress: bool = True,
                 features: str | Path | None = None, matches: str | Path | None = None, executor: str = "local",
-                ray_options: RayOptions | None = None) -> Path:
+                ray_options: RayOptions | None = None, extend: ExtendOptions | None = None) -> Path:
     """Reconstruct the images below ``image_dir`` into ``output_dir``; returns the main model's folder.
 
     Runs the missing stages (extract, pairs, match) and reuses existing outputs made with
@@ -160,6 +151,7 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
     the keyword arguments from ``overwrite`` on are the fields of RunSettings.
     Raises ReconstructionError, after writing stats.json and keeping the database, when no
     model comes out; SekdError when another process is using ``output_dir``.
+    ``extend``: add the photos ``output_dir``'s model lacks to it instead, with its recorded settings (extend.py).
     """
     require_pycolmap()
     config = config or ReconstructConfig()
@@ -167,6 +159,10 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
                            ray_options=ray_options)
     image_dir, out = Path(image_dir), Path(output_dir)
     _check_inputs(image_dir, features, matches)
+    if extend is not None:
+        if features is not None or overwrite:
+            raise SekdError("--extend adds photos to OUTPUT's own files: leave out --features, --matches, --overwrite")
+        return extend_model(image_dir, out, extend, settings, weights=config.features.weights)
     out.mkdir(parents=True, exist_ok=True)
     with exclusive_lock(out, what="reconstruction folder"):
         clean_scratch(out)  # left by a killed run: nobody else can be using them while we hold the lock
@@ -187,7 +183,7 @@ def _check_inputs(image_dir: Path, features: str | Path | None, matches: str | P
 def _locked(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSettings,
             features: str | Path | None, matches: str | Path | None) -> Path:
     """The run, inside the folder's lock; stats.json records how it ended, success or a failure to explain."""
-    timer, stats = _Timer(), {"status": "running", "failure": None, "config": _config_dict(config),
+    timer, stats = StageTimer(), {"status": "running", "failure": None, "config": _config_dict(config),
                               "versions": package_versions(), "images_dir": str(image_dir),
                               "inputs": {"features": str(features) if features else None,
                                          "matches": str(matches) if matches else None}}
@@ -205,11 +201,13 @@ def _locked(image_dir: Path, out: Path, config: ReconstructConfig, settings: Run
             write_json(stats, out / "stats.json")
 
 
-def _run(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSettings, timer: _Timer, stats: dict,
+def _run(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSettings, timer: StageTimer, stats: dict,
          features: str | Path | None, matches: str | Path | None) -> Path:
     # Options are checked first, so a typo fails in a second, not after extraction and matching.
     options, two_view = _checked_options(image_dir, config, features, stats)
-    features, pairs_file, matches = _inputs(image_dir, out, config, settings, timer, features, matches)
+    gps = plan_gps(image_dir, photo_names(image_dir, features), config.gps)
+    features, pairs_file, matches = _inputs(image_dir, out, config, settings, timer, features, matches,
+                                            gps.neighbors(config.gps))
     stats["matching"] = _matching_config(matches)
     pairs, keypoints = read_pairs(pairs_file), features
     if config.refine.enabled:
@@ -232,7 +230,11 @@ def _run(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSet
             models = run_mapper(database, image_dir, options, settings.progress, log_prefix=log_prefix(log))
             models = principal_point.settle(models, out, options, settings.progress, log_prefix(log))
         stats["principal_point"], stats["principal_point_decision"] = principal_point.outcome, principal_point.details()
-    return _finish(models, match_stats, options, out, stats, database)
+    georef = georeference(models, gps, config.gps, config.seed)  # models[0] moved into the ENU frame
+    stats["georeference"] = {k: v for k, v in georef.items() if k != "per_image"}
+    model = _finish(models, match_stats, options, out, stats, database)
+    write_georef(out, georef)
+    return model
 
 
 def _checked_options(image_dir: Path, config: ReconstructConfig, features: str | Path | None,
@@ -271,9 +273,11 @@ def refined_name(features_name: str) -> str:
     return f"{path.stem}-refined{path.suffix or '.h5'}"
 
 
-def _inputs(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSettings, timer: _Timer,
-            features: str | Path | None, matches: str | Path | None) -> tuple[Path, Path, Path]:
-    """Features, pairs file and matches: the caller's files where given, else made (or reused) in ``out``.
+def _inputs(image_dir: Path, out: Path, config: ReconstructConfig, settings: RunSettings, timer: StageTimer,
+            features: str | Path | None, matches: str | Path | None,
+            gps: GpsNeighbors | None = None) -> tuple[Path, Path, Path]:
+    """Features, pairs file and matches: the caller's files where given, else made (or reused) in ``out``
+    (``gps``: GPS neighbour pairs added to the pairs made).
 
     Extraction and matching run where ``settings.executor`` says, in one session: a Ray cluster is
     connected to (or a local one started) once for both stages, not once per stage.
@@ -297,7 +301,7 @@ def _inputs(image_dir: Path, out: Path, config: ReconstructConfig, settings: Run
                     logger.warning("warning: --masks %s: not applied to --features %s, which is used as it is",
                                    masks, features)
         with timer("pairs"):
-            pairs_file = _pairs_file(out, config.pairs, features, matches, settings.progress)
+            pairs_file = _pairs_file(out, config.pairs, features, matches, settings.progress, gps)
         with timer("match"):
             if matches is None:
                 matches = match_features(features, pairs_file, out / config.file_names[1], config.matching,
@@ -308,10 +312,11 @@ def _inputs(image_dir: Path, out: Path, config: ReconstructConfig, settings: Run
 
 
 def _pairs_file(out: Path, config: PairsConfig, features: str | Path, matches: str | Path | None,
-                progress: bool) -> Path:
-    """``out``/pairs.txt: the pairs chosen among the features' images, or those of the caller's matches."""
+                progress: bool, gps: GpsNeighbors | None = None) -> Path:
+    """``out``/pairs.txt: the pairs chosen among the features' images (plus ``gps`` neighbours), or those of
+    the caller's matches."""
     if matches is None:
-        return make_pairs(features, out / "pairs.txt", config, progress=progress)
+        return make_pairs(features, out / "pairs.txt", config, progress=progress, gps=gps)
     pairs = read_pairs(config.file) if config.file else _stored_pairs(Path(matches))
     return write_pairs(pairs, out / "pairs.txt")  # the record of what was imported
 

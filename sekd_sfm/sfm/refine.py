@@ -171,11 +171,12 @@ def align_patches(a: AlignImage, b: AlignImage, xa: np.ndarray, xb: np.ndarray, 
 
 
 def solve_offsets(num_points: int, ia: np.ndarray, ib: np.ndarray, A: np.ndarray, t: np.ndarray,
-                  prior: float, reweightings: int = 2) -> tuple[np.ndarray, np.ndarray]:
+                  prior: float, reweightings: int = 2, fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keypoint shifts ``d`` (``num_points x 2``) with ``d[ib] - A d[ia] ~ t`` per match, and the final residuals.
 
     ``ia``, ``ib``: ``E`` point indices; ``A``: ``E x 2 x 2``; ``t``: ``E x 2``. Linear least
     squares (LSQR) plus ``prior * d = 0``, then Huber reweighting (scale 0.25 px) ``reweightings`` times.
+    ``fixed`` (``num_points`` bools): points that do not move (their columns leave the system, so ``d`` = 0 there).
     """
     from scipy import sparse
     from scipy.sparse.linalg import lsqr
@@ -187,6 +188,8 @@ def solve_offsets(num_points: int, ia: np.ndarray, ib: np.ndarray, A: np.ndarray
     r = np.concatenate([2 * rows, 2 * rows + 1, 2 * rows, 2 * rows, 2 * rows + 1, 2 * rows + 1])
     c = np.concatenate([2 * ib, 2 * ib + 1, 2 * ia, 2 * ia + 1, 2 * ia, 2 * ia + 1])
     v = np.concatenate([np.ones(E), np.ones(E), -A[:, 0, 0], -A[:, 0, 1], -A[:, 1, 0], -A[:, 1, 1]])
+    if fixed is not None:  # a fixed point's shift is known (zero): its terms leave the equations
+        v = v * ~np.repeat(fixed, 2)[c]
     prior_rows = sparse.identity(2 * num_points, format="csr") * prior
     weight = np.ones(E)
     for _ in range(reweightings + 1):
@@ -194,6 +197,8 @@ def solve_offsets(num_points: int, ia: np.ndarray, ib: np.ndarray, A: np.ndarray
         rhs = np.concatenate([(t * weight[:, None]).ravel(), np.zeros(2 * num_points)])
         d = lsqr(sparse.vstack([system, prior_rows]).tocsr(), rhs, atol=1e-8, btol=1e-8, iter_lim=500)[0]
         d = d.reshape(-1, 2)
+        if fixed is not None:
+            d[fixed] = 0.0
         residual = np.linalg.norm(d[ib] - np.einsum("eij,ej->ei", A, d[ia]) - t, axis=1)
         weight = 1 / np.maximum(1, residual / 0.25)
     return d, residual
@@ -240,10 +245,11 @@ def _pair_edges(a: AlignImage, b: AlignImage, ka: np.ndarray, kb: np.ndarray, id
     return ia[ok], ib[ok], A[ok], t[ok].astype(np.float64)
 
 
-def _signature(features: Path, matches: Path, pairs: list[tuple[str, str]], config: RefineConfig) -> str:
-    """What the refined keypoints depend on: both files (size, modification time), the pairs, the settings."""
+def _signature(features: Path, matches: Path, pairs: list[tuple[str, str]], config: RefineConfig,
+               anchor: Path | None = None) -> str:
+    """What the refined keypoints depend on: the files (size, modification time), the pairs, the settings."""
     digest = hashlib.sha256("\n".join(f"{a} {b}" for a, b in pairs).encode()).hexdigest()[:16]
-    files = {str(p): [p.stat().st_size, p.stat().st_mtime_ns] for p in (features, matches)}
+    files = {str(p): [p.stat().st_size, p.stat().st_mtime_ns] for p in (features, matches, anchor) if p is not None}
     return json.dumps({"files": files, "pairs": digest, "config": config.as_dict()}, sort_keys=True)
 
 
@@ -266,18 +272,23 @@ def _alignment_resolution(features: Path) -> int | None:
 
 
 def refine_keypoints(features: str | Path, matches: str | Path, pairs: list[tuple[str, str]], image_dir: str | Path,
-                     output: str | Path, config: RefineConfig | None = None, progress: bool = True) -> Path:
+                     output: str | Path, config: RefineConfig | None = None, progress: bool = True,
+                     anchor: str | Path | None = None) -> Path:
     """Refined keypoints of every image of ``features`` (hloc layout, original pixels) written to ``output``.
 
     ``pairs`` are the matched pairs to use (read from ``matches``). Reused when ``output`` was
     made from the same files, pairs and settings; written atomically (a killed run leaves no
     partial file). Returns ``output``.
+
+    ``anchor``: an earlier refined file (``sekd reconstruct --extend``): its images keep its keypoints
+    exactly and are the fixed ends of their matches, so only the other images' keypoints move.
     """
     from tqdm import tqdm
 
     config = config or RefineConfig()
     features, matches, image_dir, output = Path(features), Path(matches), Path(image_dir), Path(output)
-    signature = _signature(features, matches, pairs, config)
+    anchor = Path(anchor) if anchor is not None else None
+    signature = _signature(features, matches, pairs, config, anchor)
     if is_current(output, signature):
         logger.info("%s: refined keypoints up to date, reused", output)
         return output
@@ -288,6 +299,8 @@ def refine_keypoints(features: str | Path, matches: str | Path, pairs: list[tupl
         sizes = {n: f[n]["image_size"][()] for n in names if "image_size" in f[n]}
         # hloc's triangulation scales its thresholds by the keypoints' "uncertainty" (px): kept as extraction set it.
         uncertainty = {n: f[n]["keypoints"].attrs["uncertainty"] for n in names if "uncertainty" in f[n]["keypoints"].attrs}
+    anchored = _anchored_keypoints(anchor, {n: len(k) for n, k in keypoints.items()}) if anchor is not None else {}
+    keypoints.update({n: k.astype(np.float64) for n, k in anchored.items()})
     first = np.cumsum([0] + [len(keypoints[n]) for n in names])
     base = dict(zip(names, first[:-1].tolist()))
     images = _ImageCache(image_dir, _alignment_resolution(features))
@@ -307,7 +320,11 @@ def refine_keypoints(features: str | Path, matches: str | Path, pairs: list[tupl
         ia, ib, A, t = (np.concatenate(part) for part in zip(*edges))
     else:
         ia, ib, A, t = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2, 2)), np.zeros((0, 2))
-    shifts, residual = solve_offsets(first[-1].item(), ia.astype(np.int64), ib.astype(np.int64), A, t, config.prior)
+    fixed = np.zeros(first[-1].item(), bool)
+    for name in anchored:
+        fixed[base[name]: base[name] + len(keypoints[name])] = True
+    shifts, residual = solve_offsets(first[-1].item(), ia.astype(np.int64), ib.astype(np.int64), A, t, config.prior,
+                                     fixed=fixed)
     shifts = np.clip(shifts, -config.max_shift, config.max_shift)
     moved = np.linalg.norm(shifts, axis=1)
     summary = {"matches": considered, "aligned": len(ia),
@@ -322,7 +339,7 @@ def refine_keypoints(features: str | Path, matches: str | Path, pairs: list[tupl
             sx, sy = scales.get(name, (1.0, 1.0))
             refined = keypoints[name] + shifts[base[name]: base[name] + len(keypoints[name])] * (sx, sy)
             group = f.create_group(name)
-            group.create_dataset("keypoints", data=refined.astype(np.float32))
+            group.create_dataset("keypoints", data=anchored[name] if name in anchored else refined.astype(np.float32))
             if name in uncertainty:
                 group["keypoints"].attrs["uncertainty"] = uncertainty[name]
             if name in sizes:
@@ -330,6 +347,18 @@ def refine_keypoints(features: str | Path, matches: str | Path, pairs: list[tupl
     logger.info("%s: %d of %d matches aligned, median shift %.3f px", output, summary["aligned"], considered,
                 summary["median_shift_px"])
     return output
+
+
+def _anchored_keypoints(anchor: Path, counts: dict[str, int]) -> dict[str, np.ndarray]:
+    """The keypoints (as stored, float32 N x 2) of ``anchor``'s images among those of ``counts`` (keypoints per
+    image in the feature file); SekdError when a count differs (the files come from different extractions)."""
+    with h5py.File(anchor, "r") as f:
+        kept = {n: f[n]["keypoints"][()] for n in counts if n in f}
+    wrong = [n for n, k in kept.items() if len(k) != counts[n]]
+    if wrong:
+        raise SekdError(f"{anchor}: {wrong[0]} has {len(kept[wrong[0]])} keypoints, the feature file "
+                        f"{counts[wrong[0]]}; the files come from different extractions")
+    return kept
 
 
 def refine_summary(path: Path) -> dict:

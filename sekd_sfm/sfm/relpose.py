@@ -15,7 +15,12 @@ import numpy as np
 
 from ..errors import SekdError
 from ..features import FeatureConfig, build_extractor
-from ..files.images import ImageReadError, read_image, resize_max_side, to_original_pixels
+from ..files.images import (
+    ImageReadError,
+    read_image,
+    resize_max_side,
+    to_original_pixels,
+)
 from ..match import MatchConfig, describe_config, match_descriptors
 from .colmap import require_pycolmap
 from .database import COLMAP_PIXEL_OFFSET, parse_camera_params

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 import os
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +15,21 @@ from .colmap import open_database, require_pycolmap
 
 class ReconstructionError(SekdError):
     """The reconstruction failed or is incomplete; the message's first line says what, the rest why."""
+
+
+class StageTimer:
+    """Wall time of each named stage: ``with timer("extract"): ...`` sets ``timer.seconds["extract"]`` (s, 3 decimals)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = round(time.perf_counter() - start, 3)
 
 
 def match_statistics(database: str | Path, min_inliers: int) -> dict:
