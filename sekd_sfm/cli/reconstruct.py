@@ -68,7 +68,7 @@ def _print_option_help(ctx: click.Context, param: click.Parameter, values) -> tu
     """``--mapper help`` / ``--verification help``: list the settable options and their defaults."""
     if "help" not in values:
         return values
-    from sekd_sfm.sfm.colmap import option_names, require_pycolmap
+    from sekd_sfm.sfm.colmap import option_values, require_pycolmap
 
     pycolmap = require_pycolmap()
     if param.name == "mapper":  # the options of the chosen mapper (--mapper-type is eager: already parsed)
@@ -81,10 +81,7 @@ def _print_option_help(ctx: click.Context, param: click.Parameter, values) -> tu
         options = default_options("incremental" if kind == "auto" else kind)
     else:
         options = pycolmap.TwoViewGeometryOptions()
-    for name in option_names(options):
-        value = options
-        for part in name.split("."):
-            value = getattr(value, part)
+    for name, value in option_values(options):
         click.echo(f"{name} = {value}")
     ctx.exit(0)
 

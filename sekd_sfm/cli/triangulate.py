@@ -43,13 +43,10 @@ def _print_triangulator_options(ctx: click.Context, _param, values) -> tuple:
     """``--mapper help``: the settable options of the triangulator (pycolmap IncrementalPipelineOptions)."""
     if "help" not in values:
         return values
-    from sekd_sfm.sfm.colmap import option_names, require_pycolmap
+    from sekd_sfm.sfm.colmap import option_values, require_pycolmap
 
     options = require_pycolmap().IncrementalPipelineOptions()
-    for name in option_names(options):
-        value = options
-        for part in name.split("."):
-            value = getattr(value, part)
+    for name, value in option_values(options):
         click.echo(f"{name} = {value}")
     ctx.exit(0)
 

@@ -150,6 +150,17 @@ def option_names(options, prefix: str = "") -> list[str]:
     return names
 
 
+def option_values(options) -> list[tuple[str, object]]:
+    """``(dotted name, current value)`` of every settable field of a pycolmap options object (``--mapper help``)."""
+    values = []
+    for name in option_names(options):
+        value = options
+        for part in name.split("."):
+            value = getattr(value, part)
+        values.append((name, value))
+    return values
+
+
 def _resolve(options, key: str, what: str):
     *path, name = key.split(".")
     target = options
