@@ -186,6 +186,43 @@ def test_synthetic_outputs_and_stats(synthetic):
     assert (out / "pairs.txt").read_text().count("\n") == 28
 
 
+def test_final_filter_drops_wrong_observations_and_restores_the_poses(synthetic):
+    """Observations moved 3 px (wrong matches COLMAP's 4 px keep) bend the model; the final filter drops them."""
+    from sekd_sfm.sfm.mapper_worker import final_filter, reprojection_errors
+
+    _, _, out, _ = synthetic
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["final_filter"]["threshold_px"] == 1.0  # 0.2 px noise: 3 sigma is under the 1 px floor
+    reconstruction = pycolmap.Reconstruction(str(out / "model"))
+    clean = {reconstruction.image(i).name: reconstruction.image(i).cam_from_world().rotation.matrix()
+             for i in reconstruction.reg_image_ids()}
+    moved = 0
+    for image_id in list(reconstruction.reg_image_ids())[:3]:
+        for point in [p for p in reconstruction.image(image_id).points2D if p.has_point3D()][:40]:
+            point.xy = point.xy + np.array([3.0, 0.0])
+            moved += 1
+    pycolmap.bundle_adjustment(reconstruction)  # the mapper's final adjustment, outliers included
+    bent = reprojection_errors(reconstruction)
+    names = sorted(clean)
+
+    def largest_change() -> float:  # of a relative rotation against the clean model (deg)
+        return max(rotation_angle_deg((clean[b] @ clean[a].T).T @ (rot(reconstruction, b) @ rot(reconstruction, a).T))
+                   for i, a in enumerate(names) for b in names[i + 1:])
+
+    bent_by = largest_change()
+    refine = {"focal_length": False, "principal_point": False, "extra_params": False}
+    record = final_filter(reconstruction, refine, 1, pycolmap)
+    # The moved ones, and some of their points' other observations, which the moved ones had bent (or left alone).
+    assert record["threshold_px"] == 1.0 and moved <= record["removed_observations"] < 2 * moved
+    assert record["mean_error_after_px"] < bent.mean() and reprojection_errors(reconstruction).max() <= 1.0 + 1e-6
+    assert bent_by > 0.05 and largest_change() < bent_by / 2, (bent_by, largest_change())  # most of the way back
+
+
+def rot(reconstruction, name: str) -> np.ndarray:
+    image = next(im for im in reconstruction.images.values() if im.name == name)
+    return image.cam_from_world().rotation.matrix()
+
+
 def test_principal_point_setting_and_an_explicit_mapper_override(synthetic):
     _, _, out, _ = synthetic
     refine = CameraConfig(model="SIMPLE_PINHOLE", mode="single", params=CALIBRATED.params, principal_point="refine")

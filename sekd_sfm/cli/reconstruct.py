@@ -105,6 +105,12 @@ refine_option = click.option(
     help="Move each keypoint to where its matches' image patches agree (sub-pixel patch alignment, then one "
          "least-squares fit per keypoint; written to features-refined.h5) before the database. Learned "
          "keypoints sit ~0.25 px off; refined, long walks drift less. --no-refine maps the detections as they are.")
+final_filter_option = click.option(
+    "--final-filter/--no-final-filter", default=True, show_default=True,
+    help="After mapping, drop the observations whose reprojection error exceeds max(1 px, 3 robust standard "
+         "deviations of the model's errors) and adjust the model again (up to 3 rounds): a wrong match within "
+         "COLMAP's 4 px still bends a model whose keypoints are good to a tenth of a pixel. Pose AUC@5 on a "
+         "generated 250-photo walk 0.972 -> 0.990; stats.json final_filter says what it removed.")
 seed_option = click.option("--seed", type=int, default=0, show_default=True,
                            help="Random seed of RANSAC and the mapper.")
 
@@ -117,7 +123,7 @@ verification_option = click.option(
 def mapping_options(*, verification: bool = True) -> Decorator:
     """The group ``mapping``: --mapper-type, --mapper, --refine, --verification (if ``verification``) and --seed,
     how matches become a model."""
-    declarations = [mapper_type_option, mapper_option, refine_option]
+    declarations = [mapper_type_option, mapper_option, refine_option, final_filter_option]
     declarations += [verification_option] if verification else []
     return option_group("mapping", *declarations, seed_option)
 
@@ -146,6 +152,7 @@ def reconstruct_config(extraction: OptionValues, matching: OptionValues, camera:
                                verification=list(mapping.get("verification", ())), seed=mapping["seed"],
                                masks=str(Path(masks).resolve()) if masks else None)
     config.refine.enabled = mapping["refine"]
+    config.final_filter = mapping.get("final_filter", True)
     if conf:  # hloc-style names, so the files of several presets coexist in OUTPUT
         config.file_names = output_names(conf, "pairs")
     return config

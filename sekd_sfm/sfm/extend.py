@@ -122,6 +122,8 @@ class _Recorded:
     seed: int
     file_names: tuple[str, str]
     masks: str | None
+    #: Models built before the final filter existed record none: their extensions are not filtered either.
+    final_filter: bool = False
 
 
 def _typed(cls, data: dict):
@@ -149,7 +151,7 @@ def _recorded(config: dict, weights: str | None) -> _Recorded:
                      refine=_typed(RefineConfig, config.get("refine", {})), mapper=list(config.get("mapper", [])),
                      verification=list(config.get("verification", [])), seed=int(config.get("seed", 0)),
                      file_names=tuple(config.get("file_names", ("features.h5", "matches.h5"))),
-                     masks=config.get("masks"))
+                     masks=config.get("masks"), final_filter=bool(config.get("final_filter", False)))
 
 
 def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
@@ -294,8 +296,10 @@ def _stage(image_dir: Path, out: Path, stage: Path, config: _Recorded, options: 
         mapper = extension_options(config, options.refine, database, known)
         match_stats = match_statistics(database, int(mapper.min_num_matches))
         with timer("mapping"):
+            filtered: list = []
             models = run_mapper(database, image_dir, mapper, settings.progress, log_prefix=log_prefix(log),
-                                input_model=out / MAIN_MODEL)
+                                input_model=out / MAIN_MODEL, final_filter=config.final_filter, records=filtered)
+            record["final_filter"] = filtered[0] if filtered else None
     settle_database(database)
     model = _checked_model(models, out, options.refine)
     (stage / "model.tmp").mkdir()

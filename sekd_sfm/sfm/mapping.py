@@ -18,6 +18,7 @@ Output layout under the output folder::
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import pickle
 import select
@@ -166,7 +167,8 @@ def clean_scratch(folder: Path) -> None:
 
 
 def run_mapper(database: str | Path, image_dir: str | Path, options=None, progress: bool = True,
-               log_prefix: str | Path | None = None, input_model: str | Path | None = None) -> list:
+               log_prefix: str | Path | None = None, input_model: str | Path | None = None,
+               final_filter: bool = False, records: list | None = None) -> list:
     """Map ``database`` with the mapper of ``options``; the reconstructions found, largest first (may be empty).
 
     ``options`` is one of pycolmap's pipeline option objects (``mapper_options``; default:
@@ -175,7 +177,8 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
     SIGTERM) kills it within a fraction of a second and raises Interrupted. COLMAP's log of
     the child goes to files ``<log_prefix><date>-<time>.<pid>`` (none without ``log_prefix``).
     ``input_model``: a model to continue from (incremental mapper only; ``sekd reconstruct --extend``),
-    its image ids those of ``database``.
+    its image ids those of ``database``. ``final_filter``: each model's outlying observations dropped and the
+    model adjusted again (``mapper_worker.final_filter``); its record per model is appended to ``records``.
     """
     require_pycolmap()
     options = options if options is not None else mapper_options()
@@ -186,12 +189,16 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
     request = {"mapper_type": kind, "options": options, "database": str(database), "image_dir": str(image_dir),
                "scratch": str(scratch / "work"), "result": str(scratch / "result"), "parent_pid": os.getpid(),
                "seed": _seed(options), "log_prefix": str(log_prefix) if log_prefix else None,
-               "input_path": str(input_model) if input_model else ""}
+               "input_path": str(input_model) if input_model else "", "final_filter": final_filter}
     bar = _MapperProgress(total, kind, progress)
     try:
         _run_child(request, scratch, bar)
         reconstruction = require_pycolmap().Reconstruction
-        results = sorted((scratch / "result").iterdir(), key=lambda p: int(p.name)) if (scratch / "result").is_dir() else []
+        folder = scratch / "result"
+        results = sorted((p for p in folder.iterdir() if p.is_dir()), key=lambda p: int(p.name)) if folder.is_dir() else []
+        if records is not None:
+            records.extend(json.loads(p.with_suffix(".json").read_text()) if p.with_suffix(".json").is_file() else None
+                           for p in results)
         return [reconstruction(str(path)) for path in results]
     finally:
         bar.bar.close()
