@@ -192,7 +192,8 @@ def test_final_filter_drops_wrong_observations_and_restores_the_poses(synthetic)
 
     _, _, out, _ = synthetic
     stats = json.loads((out / "stats.json").read_text())
-    assert stats["final_filter"]["threshold_px"] == 1.0  # 0.2 px noise: 3 sigma is under the 1 px floor
+    filtered = stats["final_filter"]  # 0.2 px of noise per axis: 3 robust sigma ~0.6 px
+    assert 0.5 < filtered["threshold_px"] < 0.8 and filtered["mean_error_after_px"] <= filtered["mean_error_before_px"]
     reconstruction = pycolmap.Reconstruction(str(out / "model"))
     clean = {reconstruction.image(i).name: reconstruction.image(i).cam_from_world().rotation.matrix()
              for i in reconstruction.reg_image_ids()}
@@ -213,8 +214,8 @@ def test_final_filter_drops_wrong_observations_and_restores_the_poses(synthetic)
     refine = {"focal_length": False, "principal_point": False, "extra_params": False}
     record = final_filter(reconstruction, refine, 1, pycolmap)
     # The moved ones, and some of their points' other observations, which the moved ones had bent (or left alone).
-    assert record["threshold_px"] == 1.0 and moved <= record["removed_observations"] < 2 * moved
-    assert record["mean_error_after_px"] < bent.mean() and reprojection_errors(reconstruction).max() <= 1.0 + 1e-6
+    assert 0.5 < record["threshold_px"] < 0.8 and moved <= record["removed_observations"] < record["observations"] / 5
+    assert record["mean_error_after_px"] < bent.mean() and reprojection_errors(reconstruction).max() <= record["threshold_px"] + 1e-6
     assert bent_by > 0.05 and largest_change() < bent_by / 2, (bent_by, largest_change())  # most of the way back
 
 

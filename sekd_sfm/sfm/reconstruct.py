@@ -99,7 +99,7 @@ class ReconstructConfig:
     #: Keypoint refinement between matching and the database (``refine.py``): on the generated
     #: 250-photo block pose AUC@5 0.971 -> 0.980, reprojection error 0.39 -> 0.22 px.
     refine: RefineConfig = field(default_factory=RefineConfig)
-    #: After mapping, drop each model's outlying observations (beyond max(1 px, 3 robust sigma)) and adjust it
+    #: After mapping, drop each model's outlying observations (beyond max(0.5 px, 3 robust sigma)) and adjust it
     #: again (``mapper_worker.final_filter``): pose AUC@5 on the generated 250-photo block 0.972 -> 0.990.
     final_filter: bool = True
     seed: int = 0
