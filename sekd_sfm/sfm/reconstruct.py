@@ -100,7 +100,7 @@ class ReconstructConfig:
     #: 250-photo block pose AUC@5 0.971 -> 0.980, reprojection error 0.39 -> 0.22 px.
     refine: RefineConfig = field(default_factory=RefineConfig)
     #: After mapping, drop each model's outlying observations (beyond max(0.5 px, 3 robust sigma)) and adjust it
-    #: again (``mapper_worker.final_filter``): pose AUC@5 on the generated 250-photo block 0.972 -> 0.990.
+    #: again (``mapper_worker.final_filter``): pose AUC@5 on the generated 250-photo block 0.972 -> 0.993.
     final_filter: bool = True
     seed: int = 0
     #: Names of the feature and match files made in the output folder (``--conf`` names them
