@@ -194,6 +194,9 @@ def test_final_filter_drops_wrong_observations_and_restores_the_poses(synthetic)
     stats = json.loads((out / "stats.json").read_text())
     filtered = stats["final_filter"]  # 0.2 px of noise per axis: 3 robust sigma ~0.6 px
     assert 0.5 < filtered["threshold_px"] < 0.8 and filtered["mean_error_after_px"] <= filtered["mean_error_before_px"]
+    from sekd_sfm.sfm.report import format_summary
+
+    assert f"final filter       {filtered['removed_observations']} of " in format_summary(stats)
     reconstruction = pycolmap.Reconstruction(str(out / "model"))
     clean = {reconstruction.image(i).name: reconstruction.image(i).cam_from_world().rotation.matrix()
              for i in reconstruction.reg_image_ids()}

@@ -179,6 +179,11 @@ def format_summary(stats: dict) -> str:
     if refine:
         lines.append(f"  refined keypoints  {refine['aligned']} of {refine['matches']} matches aligned, "
                      f"median shift {refine['median_shift_px']:.2f} px")
+    filtered = stats.get("final_filter")
+    if filtered and "threshold_px" in filtered:
+        lines.append(f"  final filter       {filtered['removed_observations']} of {filtered['observations']} observations "
+                     f"beyond {filtered['threshold_px']:.2f} px dropped, mean error "
+                     f"{filtered['mean_error_before_px']:.3f} -> {filtered['mean_error_after_px']:.3f} px")
     unregistered = stats.get("unregistered", [])
     for item in unregistered[:5]:
         lines.append(f"  not registered     {item['name']}: {item.get('keypoints', 0)} keypoints, "
