@@ -106,7 +106,7 @@ def reprojection_errors(reconstruction) -> np.ndarray:
 
 
 def final_filter(reconstruction, refine: dict, num_threads: int, pycolmap, fixed_frames=(), fixed_cameras=()) -> dict:
-    """Drop the outlying observations of a mapped model and adjust it again, until none are left (in place).
+    """Drop the outlying observations of a mapped model and adjust it again, until few are left (in place).
 
     COLMAP keeps every observation within 4 px (``filter_max_reproj_error``) in its final bundle
     adjustment, with a squared loss. Refined keypoints are good to a fraction of a pixel (median
@@ -115,10 +115,10 @@ def final_filter(reconstruction, refine: dict, num_threads: int, pycolmap, fixed
     FINAL_FILTER_SIGMAS robust sigma) (sigma from the median error) and adjusts everything once more, the
     intrinsics as the mapper refined them (``refine``: focal_length, principal_point, extra_params);
     ``fixed_frames`` / ``fixed_cameras`` (ids) stay constant, as an extension's earlier ones.
-    Pose AUC@5 against the true cameras: generated 250-photo block 0.972 -> 0.993, 47-photo turntable ring
-    under a long lens 0.985 -> 0.993 at 640 px (SIFT 0.991), 0.991 -> 0.997 at 1280 px (SIFT 0.998), fountain-P11 0.970 -> 0.988 (AUC@1
-    0.852 -> 0.938: its principal point, tested afterwards, is no longer pulled by the outliers)
-    (docs/experiments.md, section 30).
+    Pose AUC@5 against the true cameras: generated 250-photo block 0.972 -> 0.993; 47-photo turntable
+    ring under a long lens 0.985 -> 0.993 at 640 px (SIFT 0.991), 0.991 -> 0.997 at 1280 px (SIFT 0.998);
+    fountain-P11 0.970 -> 0.988 (AUC@1 0.852 -> 0.938: its principal point, tested afterwards, is no
+    longer pulled by the outliers) (docs/experiments.md, section 30).
     Returns the record for stats.json (threshold, removed observations, error before/after, seconds).
     """
     start = time.perf_counter()
