@@ -151,12 +151,18 @@ def test_settle_without_a_test_returns_the_models_as_they_are(tmp_path):
 
 @pytest.mark.parametrize("kind", ["incremental", "hierarchical", "global"])
 def test_the_final_adjustment_refines_what_the_mapper_refines(kind):
+    from sekd_sfm.sfm.mapper_worker import refined_intrinsics
+
+    def focal_extra_threads(options):
+        refine, threads = refined_intrinsics(options)
+        return refine["focal_length"], refine["extra_params"], threads
+
     options = default_options(kind)
-    assert pp._refined_intrinsics(options) == (True, True, 1)
+    assert focal_extra_threads(options) == (True, True, 1)
     inner = options.mapper.bundle_adjustment if kind == "global" else getattr(options, "incremental_options", options)
     name = "refine_focal_length" if kind == "global" else "ba_refine_focal_length"
     setattr(inner, name, False)
-    assert pp._refined_intrinsics(options) == (False, True, 1)
+    assert focal_extra_threads(options) == (False, True, 1)
 
 
 @pytest.fixture(scope="module")

@@ -54,6 +54,39 @@ def _event(text: str) -> None:
     os.write(1, (text + "\n").encode())  # unbuffered: the parent's progress bar moves at once
 
 
+def adjustment_options(reconstruction, num_threads: int, pycolmap, refine: dict | None = None):
+    """pycolmap BundleAdjustmentOptions for one global adjustment of ``reconstruction``: quiet, on ``num_threads``,
+    Ceres' sparse direct solver at any size; ``refine`` (focal_length, principal_point, extra_params) sets which
+    intrinsics move (None: pycolmap's defaults)."""
+    options = pycolmap.BundleAdjustmentOptions()
+    options.print_summary = False
+    options.ceres.solver_options.num_threads = num_threads
+    # Above 1,000 images Ceres would switch to its iterative Schur solver, which took more than 13 minutes on
+    # the merged 2,000-photo block; the sparse direct one stays cheap while the camera graph is sparse, as
+    # retrieval pairs make it (each photo shares points with a few dozen others).
+    options.ceres.max_num_images_direct_sparse_cpu_solver = max(1000, reconstruction.num_reg_images())
+    if refine is not None:
+        options.refine_focal_length = refine["focal_length"]
+        options.refine_principal_point = refine["principal_point"]
+        options.refine_extra_params = refine["extra_params"]
+    return options
+
+
+def refined_intrinsics(options) -> tuple[dict[str, bool], int]:
+    """Which intrinsics the mapper ``options`` refines (focal_length, principal_point, extra_params) and on how
+    many threads; None: COLMAP's defaults (the principal point fixed), one thread."""
+    if options is None:
+        return {"focal_length": True, "principal_point": False, "extra_params": True}, 1
+    inner = getattr(options, "incremental_options", options)
+    if hasattr(inner, "ba_refine_focal_length"):  # incremental, or the clusters of hierarchical
+        return ({"focal_length": bool(inner.ba_refine_focal_length),
+                 "principal_point": bool(inner.ba_refine_principal_point),
+                 "extra_params": bool(inner.ba_refine_extra_params)}, int(inner.num_threads))
+    ba = options.mapper.bundle_adjustment  # global
+    return ({"focal_length": bool(ba.refine_focal_length), "principal_point": bool(ba.refine_principal_point),
+             "extra_params": bool(ba.refine_extra_params)}, int(options.num_threads))
+
+
 def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap) -> None:
     """One global bundle adjustment of a model the hierarchical mapper merged from clusters.
 
@@ -64,14 +97,7 @@ def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap) -> None:
     """
     if reconstruction.num_reg_images() < 2:
         return
-    options = pycolmap.BundleAdjustmentOptions()
-    options.print_summary = False
-    options.ceres.solver_options.num_threads = num_threads
-    # Above 1,000 images Ceres would switch to its iterative Schur solver, which took more than 13 minutes on
-    # the merged 2,000-photo block; the sparse direct one stays cheap while the camera graph is sparse, as
-    # retrieval pairs make it (each photo shares points with a few dozen others).
-    options.ceres.max_num_images_direct_sparse_cpu_solver = max(1000, reconstruction.num_reg_images())
-    pycolmap.bundle_adjustment(reconstruction, options)
+    pycolmap.bundle_adjustment(reconstruction, adjustment_options(reconstruction, num_threads, pycolmap))
 
 
 #: The final filtered adjustment (``final_filter``): an observation is an outlier when its reprojection error
@@ -130,13 +156,7 @@ def final_filter(reconstruction, refine: dict, num_threads: int, pycolmap, fixed
     sigma = float(np.median(errors)) / _CHI2_MEDIAN
     threshold = max(FINAL_FILTER_MIN_PX, FINAL_FILTER_SIGMAS * sigma)
     record.update(sigma_px=round(sigma, 4), threshold_px=round(threshold, 4))
-    options = pycolmap.BundleAdjustmentOptions()
-    options.print_summary = False
-    options.refine_focal_length = refine["focal_length"]
-    options.refine_principal_point = refine["principal_point"]
-    options.refine_extra_params = refine["extra_params"]
-    options.ceres.solver_options.num_threads = num_threads
-    options.ceres.max_num_images_direct_sparse_cpu_solver = max(1000, reconstruction.num_reg_images())  # as merged
+    options = adjustment_options(reconstruction, num_threads, pycolmap, refine)
     for _ in range(FINAL_FILTER_ROUNDS):
         before = reconstruction.compute_num_observations()
         pycolmap.ObservationManager(reconstruction).filter_all_points3D(threshold, FINAL_FILTER_MIN_TRI_ANGLE)
@@ -171,18 +191,6 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
     pycolmap.create_default_ceres_bundle_adjuster(options, config, reconstruction).solve()
 
 
-def _refined_intrinsics(options, kind: str) -> dict:
-    """Which intrinsics the mapper of ``options`` refined (the final filter refines the same)."""
-    if kind == "global":
-        ba = options.mapper.bundle_adjustment
-        return {"focal_length": ba.refine_focal_length, "principal_point": ba.refine_principal_point,
-                "extra_params": ba.refine_extra_params}
-    incremental = getattr(options, "incremental_options", options)
-    return {"focal_length": incremental.ba_refine_focal_length,
-            "principal_point": incremental.ba_refine_principal_point,
-            "extra_params": incremental.ba_refine_extra_params}
-
-
 def run(request: dict) -> list:
     """Run the requested mapper; the reconstructions found, largest first."""
     import pycolmap
@@ -205,13 +213,12 @@ def run(request: dict) -> list:
         raise ValueError(f"unknown mapper type {kind!r}")
     models = sorted(found.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
     if request.get("final_filter"):
-        threads = int(getattr(options, "incremental_options", options).num_threads)
+        refine, threads = refined_intrinsics(options)  # the final filter refines what the mapper refined
         fixed_frames, fixed_cameras = (), ()
         if request.get("input_path") and getattr(options, "fix_existing_frames", False):  # --extend: earlier ones
             fixed_frames = list(pycolmap.Reconstruction(request["input_path"]).reg_frame_ids())
             fixed_cameras = list(options.constant_cameras)
-        request["records"] = [final_filter(r, _refined_intrinsics(options, kind), threads, pycolmap, fixed_frames,
-                                           fixed_cameras) for r in models]
+        request["records"] = [final_filter(r, refine, threads, pycolmap, fixed_frames, fixed_cameras) for r in models]
     if request.get("log_prefix"):
         pycolmap.logging.set_log_destination(pycolmap.logging.INFO, "")  # flush and close the log
     return models

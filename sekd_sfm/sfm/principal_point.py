@@ -45,6 +45,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .mapper_worker import adjustment_options, refined_intrinsics
+
 logger = logging.getLogger("sekd")
 
 #: How far the refined principal point must move from the image centre, in its largest standard deviation
@@ -112,7 +114,8 @@ class PrincipalPointPlan:
             return models
         from ..errors import Interrupted, SekdError
 
-        refine_focal, refine_extra, threads = _refined_intrinsics(options)
+        refine, threads = refined_intrinsics(options)
+        refine_focal, refine_extra = refine["focal_length"], refine["extra_params"]
         request = {"min_significance": self.min_significance, "min_reprojection_gain": self.min_reprojection_gain,
                    "refine_focal_length": refine_focal, "refine_extra_params": refine_extra, "num_threads": threads,
                    "max_covariance_images": MAX_COVARIANCE_IMAGES}
@@ -170,17 +173,6 @@ def plan_principal_point(camera, mapper_assignments: list[str], database: str | 
     return plan
 
 
-def _refined_intrinsics(options) -> tuple[bool, bool, int]:
-    """(focal length refined, extra parameters refined, threads) of the mapper ``options`` (None: COLMAP's defaults)."""
-    if options is None:
-        return True, True, 1
-    inner = getattr(options, "incremental_options", options)
-    if hasattr(inner, "ba_refine_focal_length"):  # incremental, or the clusters of hierarchical
-        return bool(inner.ba_refine_focal_length), bool(inner.ba_refine_extra_params), int(inner.num_threads)
-    ba = options.mapper.bundle_adjustment  # global
-    return bool(ba.refine_focal_length), bool(ba.refine_extra_params), int(options.num_threads)
-
-
 def run_test(models: list, request: dict, scratch_dir: str | Path, progress: bool = True,
              log_prefix: str | Path | None = None) -> tuple[list, list[dict]]:
     """``try_refinement`` of every model in a child process; the models to keep and the record of each."""
@@ -218,13 +210,8 @@ def field_of_view_deg(camera) -> tuple[float, float]:
 def _adjust(reconstruction, refine_focal: bool, refine_extra: bool, num_threads: int, pycolmap,
             refine_principal_point: bool = True):
     """One bundle adjustment of ``reconstruction`` (in place), the principal points free; ``(adjuster, summary)``."""
-    options = pycolmap.BundleAdjustmentOptions()
-    options.refine_principal_point = refine_principal_point
-    options.refine_focal_length, options.refine_extra_params = refine_focal, refine_extra
-    options.print_summary = False
-    options.ceres.solver_options.num_threads = num_threads
-    # As the hierarchical mapper's final adjustment (mapper_worker): the sparse direct solver at any size.
-    options.ceres.max_num_images_direct_sparse_cpu_solver = max(1000, reconstruction.num_reg_images())
+    refine = {"focal_length": refine_focal, "principal_point": refine_principal_point, "extra_params": refine_extra}
+    options = adjustment_options(reconstruction, num_threads, pycolmap, refine)
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in reconstruction.reg_image_ids():
         config.add_image(image_id)
