@@ -21,7 +21,7 @@ from typing import Any
 
 from .errors import SekdError
 from .features import FeatureConfig
-from .match import DEFAULT_RATIO, MatchConfig
+from .stages.match import DEFAULT_RATIO, MatchConfig
 from .model.inference import SEKDConfig
 
 
@@ -35,7 +35,7 @@ class Preset:
 
 
 def _preset(name: str, description: str, feature: str, max_keypoints: int, resize_max: int, **extra) -> Preset:
-    # The ratio is the measured default of the feature (sekd_sfm.match.DEFAULT_RATIO), written out
+    # The ratio is the measured default of the feature (sekd_sfm.stages.match.DEFAULT_RATIO), written out
     # so that `sekd confs` shows the number that is used.
     settings = {"feature": feature, "max_keypoints": max_keypoints, "resize_max": resize_max,
                 "match_mode": "both", "ratio": DEFAULT_RATIO["both"][feature], **extra}

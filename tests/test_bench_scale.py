@@ -481,9 +481,9 @@ def test_bench_scale_end_to_end_and_resume(tmp_path, shared):
 def test_retrieval_finds_the_true_neighbours_of_a_generated_street(tmp_path, shared):
     # 40 photos (39 along the street + 1 distractor) at 320 px, SEKD features, the default retrieval.
     from sekd_sfm.bench.scale.run import retrieval_recall
-    from sekd_sfm.extract import extract_features
+    from sekd_sfm.stages.extract import extract_features
     from sekd_sfm.features import FeatureConfig
-    from sekd_sfm.retrieval import compute_global_descriptors
+    from sekd_sfm.stages.retrieval import compute_global_descriptors
 
     scene = tmp_path / "scene"
     generate_scene(scene, SceneConfig(num_images=40, image_size=320, seed=1), progress=False)

@@ -5,8 +5,8 @@ import pytest
 from PIL import Image
 
 from sekd_sfm.errors import SekdError
-from sekd_sfm.sfm.colmap import open_database, require_pycolmap
-from sekd_sfm.sfm.database import (
+from sekd_sfm.stages.colmap import open_database, require_pycolmap
+from sekd_sfm.stages.database import (
     PRINCIPAL_POINT_MIN_IMAGES,
     CameraConfig,
     _import_images,
@@ -16,7 +16,7 @@ from sekd_sfm.sfm.database import (
     refines_principal_point,
     tries_principal_point,
 )
-from sekd_sfm.sfm.mapping import default_options, set_principal_point_refinement
+from sekd_sfm.stages.mapping import default_options, set_principal_point_refinement
 
 pycolmap = require_pycolmap()
 EXIF_IFD, FOCAL, MAKE, MODEL = 0x8769, 0x920A, 0x010F, 0x0110

@@ -46,7 +46,7 @@ def test_default_preset_is_what_reconstruct_runs_without_options():
     preset_features, preset_matching = build_configs(defaults, conf=DEFAULT_CONF)
     assert features == preset_features
     # Without a preset the ratio is resolved later from the feature type: the same number.
-    from sekd_sfm.match import describe_config
+    from sekd_sfm.stages.match import describe_config
 
     assert describe_config(matching, "sekd", False) == describe_config(preset_matching, "sekd", False)
 
@@ -125,7 +125,7 @@ def test_cli_match_conf_names_the_output(captured, tmp_path):
 
 
 def test_cli_reconstruct_conf_sets_configs_and_file_names(monkeypatch, tmp_path):
-    import sekd_sfm.sfm.reconstruct as sfm_reconstruct
+    import sekd_sfm.pipelines.reconstruct as sfm_reconstruct
 
     seen = {}
     monkeypatch.setattr(sfm_reconstruct, "reconstruct", lambda images, out, config, **kw: seen.update(c=config))

@@ -23,7 +23,7 @@ from click.testing import CliRunner
 from conftest import SHARED
 
 from sekd_sfm.cli.main import sekd
-from sekd_sfm.sfm.export_nerfstudio import export_nerfstudio, nerfstudio_transforms
+from sekd_sfm.stages.export_nerfstudio import export_nerfstudio, nerfstudio_transforms
 
 NERFSTUDIO = "nerfstudio==1.1.5"
 #: What nerfstudio's colmap_utils imports beyond our environment (read from its source): all light.
@@ -334,7 +334,7 @@ def fountain(tmp_path_factory):
     if not FOUNTAIN.is_dir():
         pytest.skip(f"fountain-P11 not found at {FOUNTAIN} (set SEKD_SHARED)")
     from sekd_sfm import FeatureConfig, ReconstructConfig, reconstruct
-    from sekd_sfm.sfm.refine import RefineConfig
+    from sekd_sfm.stages.refine import RefineConfig
 
     root = tmp_path_factory.mktemp("fountain")
     (root / "photos").mkdir()

@@ -22,9 +22,9 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from sekd_sfm.errors import SekdError
 from sekd_sfm.features import FeatureConfig
-from sekd_sfm.sfm import extend as extend_module
-from sekd_sfm.sfm.extend import ExtendOptions, pose_matrix
-from sekd_sfm.sfm.reconstruct import ReconstructConfig, reconstruct
+from sekd_sfm.pipelines import extend as extend_module
+from sekd_sfm.pipelines.extend import ExtendOptions, pose_matrix
+from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
 
 FIRST, ALL = 8, 11
 #: SIFT keeps the test fast on a CPU; the extension is the same for every feature type.

@@ -16,7 +16,7 @@ from conftest import SEKD_WEIGHTS
 
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.extract import extract_features
+from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import partstore
@@ -103,7 +103,7 @@ def test_resume_after_crash_before_merge(images, tmp_path, monkeypatch, shared):
     assert ff.list_keys(out) == []  # opens, holds nothing yet
     monkeypatch.setattr(partstore, "merge_parts", real_merge)
     calls = []
-    import sekd_sfm.extract as ex
+    import sekd_sfm.stages.extract as ex
     real_features_of = ex._features_of
     monkeypatch.setattr(ex, "_features_of", lambda *a: calls.append(1) or real_features_of(*a))
     extract_features(images, out, sekd_config(), progress=False)
@@ -115,7 +115,7 @@ def test_kill_9_at_any_moment_leaves_a_readable_file(tmp_path):
     """Killed while parts are being written (checkpoint_seconds=0: one chunk per image) or while merging."""
     images = write_images(tmp_path / "im", [f"{i:03d}.png" for i in range(40)], shape=(240, 320))
     out = tmp_path / "f.h5"
-    script = ("from sekd_sfm.extract import extract_features; from sekd_sfm.features import FeatureConfig; "
+    script = ("from sekd_sfm.stages.extract import extract_features; from sekd_sfm.features import FeatureConfig; "
               f"extract_features({str(images)!r}, {str(out)!r}, FeatureConfig(feature='sift', max_keypoints=300), "
               "progress=False, checkpoint_seconds=0)")
     proc = subprocess.Popen([sys.executable, "-c", script])
@@ -129,7 +129,7 @@ def test_kill_9_at_any_moment_leaves_a_readable_file(tmp_path):
     first = ff.list_keys(out)  # opens after the kill
     saved = partstore.PartStore(out).keys()
     calls = []
-    import sekd_sfm.extract as ex
+    import sekd_sfm.stages.extract as ex
     real = ex._features_of
     ex._features_of = lambda *a: calls.append(1) or real(*a)
     try:
@@ -296,7 +296,7 @@ HEAP_PROBE = """
 import sys
 import numpy as np
 from sekd_sfm.bench.scale.measure import proc_status
-from sekd_sfm.extract import extract_features
+from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.runtime import tune_allocator
 

@@ -15,13 +15,13 @@ from test_extract import write_images
 
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.extract import extract_features
+from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import matches as mf
 from sekd_sfm.files import partstore
-from sekd_sfm.match import MatchConfig, match_features
-from sekd_sfm.pairs import write_pairs
+from sekd_sfm.stages.match import MatchConfig, match_features
+from sekd_sfm.stages.pairs import write_pairs
 
 SIFT = FeatureConfig(feature="sift", max_keypoints=100)
 
@@ -367,7 +367,7 @@ def test_matching_memory_does_not_grow_with_the_collection(tmp_path, monkeypatch
     matching 4x more images stays flat (it would grow ~4x if results or descriptors accumulated)."""
     import tracemalloc
 
-    import sekd_sfm.match as match_module
+    import sekd_sfm.stages.match as match_module
 
     monkeypatch.setattr(match_module, "CACHE_IMAGES", 8)
     monkeypatch.setattr(match_module, "PART_PAIRS", 32)

@@ -14,8 +14,8 @@ from click.testing import CliRunner
 from sekd_sfm.bench.maps.georef import DEFAULT_ORIGIN, gps_copy, random_rotation
 from sekd_sfm.evaluation.strecha import read_cameras
 from sekd_sfm.files.gps import GPSPosition, read_gps, write_gps
-from sekd_sfm.pairs import PairsConfig, gps_pairs, make_pairs
-from sekd_sfm.sfm.georef import (
+from sekd_sfm.stages.pairs import PairsConfig, gps_pairs, make_pairs
+from sekd_sfm.stages.georef import (
     GpsConfig,
     camera_centres,
     degenerate_reason,
@@ -132,7 +132,7 @@ def _scene(shared, root, rotation_seed=1):
 
 def _config():
     from sekd_sfm.features import FeatureConfig
-    from sekd_sfm.sfm.reconstruct import ReconstructConfig
+    from sekd_sfm.pipelines.reconstruct import ReconstructConfig
 
     # Retrieval with K=3: the GPS pairs then add pairs, so `--gps off` shows it changes nothing. The 6 cameras
     # bow 0.3 m off their line: enough for exact GPS (min_spread_m 0.1), not for the default's metre-level GPS.
@@ -144,7 +144,7 @@ def _config():
 
 @pytest.fixture(scope="module")
 def georeferenced(shared, tmp_path_factory):
-    from sekd_sfm.sfm.reconstruct import reconstruct
+    from sekd_sfm.pipelines.reconstruct import reconstruct
 
     root = tmp_path_factory.mktemp("georef")
     truth = _scene(shared, root / "scene")
@@ -206,7 +206,7 @@ def test_gps_off_pairs_unchanged_and_no_alignment(georeferenced, tmp_path):
 
 @pytest.mark.parametrize("case", ["two photos", "collinear"])
 def test_too_few_or_collinear_gps_gives_a_warning_and_no_alignment(georeferenced, tmp_path, caplog, case):
-    from sekd_sfm.sfm.reconstruct import reconstruct
+    from sekd_sfm.pipelines.reconstruct import reconstruct
 
     root, truth = georeferenced
     images = tmp_path / "images"

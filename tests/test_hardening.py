@@ -178,7 +178,7 @@ def test_bad_peer_checkpoint(tmp_path, feature):
 
 
 def test_unexpected_error_is_one_line_unless_sekd_debug(tmp_path, monkeypatch):
-    import sekd_sfm.extract as extract_module
+    import sekd_sfm.stages.extract as extract_module
 
     def broken(*args, **kwargs):
         raise ZeroDivisionError("a bug")
@@ -192,7 +192,7 @@ def test_unexpected_error_is_one_line_unless_sekd_debug(tmp_path, monkeypatch):
 
 
 def test_permission_denied_names_the_path(tmp_path, monkeypatch):
-    import sekd_sfm.extract as extract_module
+    import sekd_sfm.stages.extract as extract_module
 
     target = tmp_path / "locked" / "f.h5"
 

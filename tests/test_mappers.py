@@ -22,9 +22,9 @@ from test_reconstruct import (
 
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.sfm.colmap import require_pycolmap
-from sekd_sfm.sfm.mapping import MAPPER_TYPES, default_options, mapper_options, resolve_mapper_type, run_mapper
-from sekd_sfm.sfm.reconstruct import ReconstructConfig, reconstruct
+from sekd_sfm.stages.colmap import require_pycolmap
+from sekd_sfm.stages.mapping import MAPPER_TYPES, default_options, mapper_options, resolve_mapper_type, run_mapper
+from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
 
 pycolmap = require_pycolmap()
 
@@ -120,7 +120,7 @@ CLEAN_SIGNALS = ("import signal; signal.pthread_sigmask(signal.SIG_SETMASK, set(
 HARNESS = textwrap.dedent("""
     import sys, time
     from sekd_sfm.errors import Interrupted
-    from sekd_sfm.sfm import mapping
+    from sekd_sfm.stages import mapping
     # A mapper that would run for a minute (the real ones look for Ctrl-C rarely or never).
     mapping.WORKER_COMMAND = [sys.executable, "-c", "import time; print(flush=True); time.sleep(60)"]
     try:
@@ -184,7 +184,7 @@ def test_the_mapper_dies_with_a_killed_parent(tmp_path):
     """kill -9 of `sekd` mid-mapping: the child must not map on alone (Linux parent-death signal)."""
     database = tmp_path / "database.db"
     pycolmap.Database.open(str(database)).close()
-    worker = ("import os, time; from sekd_sfm.sfm import mapper_worker as w; w._die_with_parent(os.getppid()); "
+    worker = ("import os, time; from sekd_sfm.stages import mapper_worker as w; w._die_with_parent(os.getppid()); "
               "time.sleep(60)")
     script = HARNESS.replace('"import time; print(flush=True); time.sleep(60)"', repr(worker))
     parent = subprocess.Popen([sys.executable, "-c", script, str(database), str(tmp_path)])

@@ -13,16 +13,16 @@ import pytest
 from click.testing import CliRunner
 from conftest import SEKD_WEIGHTS
 
-import sekd_sfm.extract as ex
+import sekd_sfm.stages.extract as ex
 from sekd_sfm.cli.main import sekd
-from sekd_sfm.extract import ExtractWorker, extract_features
+from sekd_sfm.stages.extract import ExtractWorker, extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.features.peers import PEER_WEIGHTS
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import shards
 from sekd_sfm.files.images import image_size, read_mask, scale_mask
 from sekd_sfm.model.inference import SEKDConfig
-from sekd_sfm.retrieval import global_path
+from sekd_sfm.stages.retrieval import global_path
 
 PHOTOS = ("0000.jpg", "0004.jpg", "0008.jpg")  # fountain-P11, 3072 x 2048, extracted at 320 px: fast
 RESIZE = 320
@@ -261,7 +261,7 @@ def test_cli(photos, tmp_path):
 
 
 def test_stats_record_the_masks_folder():
-    from sekd_sfm.sfm.reconstruct import ReconstructConfig, _config_dict
+    from sekd_sfm.pipelines.reconstruct import ReconstructConfig, _config_dict
 
     assert _config_dict(ReconstructConfig())["masks"] is None
     assert _config_dict(ReconstructConfig(masks="/data/masks"))["masks"] == "/data/masks"

@@ -12,7 +12,7 @@ from sekd_sfm.errors import SekdError
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import matches as mf
 from sekd_sfm.files import partstore
-from sekd_sfm.match import (
+from sekd_sfm.stages.match import (
     MatchConfig,
     augment_cols,
     augment_rows,
@@ -23,7 +23,7 @@ from sekd_sfm.match import (
     stack_cols,
     stack_rows,
 )
-from sekd_sfm.pairs import write_pairs
+from sekd_sfm.stages.pairs import write_pairs
 
 # Float case. Rows of A, columns of B (2-D points as descriptors), distances worked out by hand:
 #   a0 (0,0):   b0 1,  b4 sqrt(41), ...         nearest b0, but b0's nearest is a4 (0.5): not mutual
@@ -195,7 +195,7 @@ def test_binary_features_use_hamming(tmp_path):
 
 
 def test_default_ratio_depends_on_feature_type(small, tmp_path):
-    from sekd_sfm.match import DEFAULT_RATIO
+    from sekd_sfm.stages.match import DEFAULT_RATIO
 
     features, pairs = small
     out = match_features(features, pairs, tmp_path / "m.h5", progress=False)

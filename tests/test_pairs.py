@@ -7,7 +7,7 @@ from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import partstore
-from sekd_sfm.pairs import (
+from sekd_sfm.stages.pairs import (
     PairsConfig,
     auto_mode,
     exhaustive_pairs,

@@ -7,10 +7,10 @@ import sys
 import numpy as np
 import pytest
 
-from sekd_sfm.sfm import principal_point as pp
-from sekd_sfm.sfm.colmap import require_pycolmap
-from sekd_sfm.sfm.database import CameraConfig, _import_images
-from sekd_sfm.sfm.mapping import (
+from sekd_sfm.stages import principal_point as pp
+from sekd_sfm.stages.colmap import require_pycolmap
+from sekd_sfm.stages.database import CameraConfig, _import_images
+from sekd_sfm.stages.mapping import (
     default_options,
     mapper_options,
     run_mapper,
@@ -151,7 +151,7 @@ def test_settle_without_a_test_returns_the_models_as_they_are(tmp_path):
 
 @pytest.mark.parametrize("kind", ["incremental", "hierarchical", "global"])
 def test_the_final_adjustment_refines_what_the_mapper_refines(kind):
-    from sekd_sfm.sfm.mapper_worker import refined_intrinsics
+    from sekd_sfm.stages.mapper_worker import refined_intrinsics
 
     def focal_extra_threads(options):
         refine, threads = refined_intrinsics(options)
@@ -203,7 +203,7 @@ def ring(tmp_path_factory, shared):
     (fast; SEKD behaves the same, docs/experiments.md): the defaults, and the old rule on the same matches."""
     from sekd_sfm.bench.scale.scene import SceneConfig, generate_scene, read_scene
     from sekd_sfm.features import FeatureConfig
-    from sekd_sfm.sfm.reconstruct import ReconstructConfig, reconstruct
+    from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
 
     root = tmp_path_factory.mktemp("ring")
     generate_scene(root / "scene", SceneConfig(num_images=24, image_size=320, hfov_deg=24, layout="ring"),

@@ -25,9 +25,9 @@ from click.testing import CliRunner
 from conftest import SHARED
 
 from sekd_sfm.cli.main import sekd
-from sekd_sfm.extract import extract_features
+from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.features import FeatureConfig
-from sekd_sfm.match import match_features
+from sekd_sfm.stages.match import match_features
 
 COCO = SHARED / "data/train/coco"
 SEKD_BIN = str(Path(sys.executable).with_name("sekd")) if Path(sys.executable).with_name("sekd").exists() else "sekd"
@@ -161,7 +161,7 @@ def _library_extract(cluster, images: Path, out: Path, config: str, ray_options:
     script = ("import logging, sys\n"
               "logging.basicConfig(level=logging.INFO, format='%(message)s')\n"
               "from sekd_sfm.execution import RayOptions\n"
-              "from sekd_sfm.extract import extract_features\n"
+              "from sekd_sfm.stages.extract import extract_features\n"
               "from sekd_sfm.features import FeatureConfig\n"
               f"print(extract_features(sys.argv[1], sys.argv[2], FeatureConfig({config}), progress={progress}, "
               f"executor='ray', ray_options=RayOptions(address=sys.argv[3], {ray_options})))\n")
@@ -486,14 +486,14 @@ def test_workers_send_back_only_keys(local_run, tmp_path):
     import torch
 
     from sekd_sfm.execution.ray_run import _StageActor
-    from sekd_sfm.extract import ExtractWorker, describe_config, worker_config
+    from sekd_sfm.stages.extract import ExtractWorker, describe_config, worker_config
     from sekd_sfm.features import build_extractor
     from sekd_sfm.files import features as ff
     from sekd_sfm.files import matches as mf
     from sekd_sfm.files import partstore
-    from sekd_sfm.match import MatchConfig, MatchWorker, batches, check_feature_file
-    from sekd_sfm.match import describe_config as describe_match
-    from sekd_sfm.pairs import read_pairs
+    from sekd_sfm.stages.match import MatchConfig, MatchWorker, batches, check_feature_file
+    from sekd_sfm.stages.match import describe_config as describe_match
+    from sekd_sfm.stages.pairs import read_pairs
 
     images, features, pairs, matches = local_run
     config, threads = FeatureConfig(resize_max=160, max_keypoints=300), torch.get_num_threads()
@@ -635,7 +635,7 @@ def test_worker_skips_the_images_the_driver_claimed(local_run, tmp_path):
     import torch
 
     from sekd_sfm.execution.ray_run import BY_DRIVER, _claims_path, _StageActor
-    from sekd_sfm.extract import ExtractWorker, describe_config, worker_config
+    from sekd_sfm.stages.extract import ExtractWorker, describe_config, worker_config
     from sekd_sfm.features import build_extractor
 
     images, _, _, _ = local_run

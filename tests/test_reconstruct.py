@@ -10,14 +10,15 @@ from click.testing import CliRunner
 from sekd_sfm.bench.strecha import rotation_angle_deg
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.extract import describe_config
+from sekd_sfm.stages.extract import describe_config
 from sekd_sfm.features import FeatureConfig, build_extractor
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import partstore
-from sekd_sfm.sfm.colmap import open_database, require_pycolmap, set_options
-from sekd_sfm.sfm.database import CameraConfig, parse_camera_params
-from sekd_sfm.sfm.mapping import mapper_options, run_mapper
-from sekd_sfm.sfm.reconstruct import ReconstructConfig, _principal_point, reconstruct
+from sekd_sfm.stages.colmap import open_database, require_pycolmap, set_options
+from sekd_sfm.stages.database import CameraConfig, parse_camera_params
+from sekd_sfm.stages.mapping import mapper_options, run_mapper
+from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
+from sekd_sfm.stages.principal_point import plan_principal_point
 
 pycolmap = require_pycolmap()
 W, H, F = 640, 480, 500.0
@@ -188,13 +189,13 @@ def test_synthetic_outputs_and_stats(synthetic):
 
 def test_final_filter_drops_wrong_observations_and_restores_the_poses(synthetic):
     """Observations moved 3 px (wrong matches COLMAP's 4 px keep) bend the model; the final filter drops them."""
-    from sekd_sfm.sfm.mapper_worker import final_filter, reprojection_errors
+    from sekd_sfm.stages.mapper_worker import final_filter, reprojection_errors
 
     _, _, out, _ = synthetic
     stats = json.loads((out / "stats.json").read_text())
     filtered = stats["final_filter"]  # 0.2 px of noise per axis: 3 robust sigma ~0.6 px
     assert 0.5 < filtered["threshold_px"] < 0.8 and filtered["mean_error_after_px"] <= filtered["mean_error_before_px"]
-    from sekd_sfm.sfm.report import format_summary
+    from sekd_sfm.pipelines.report import format_summary
 
     assert f"final filter       {filtered['removed_observations']} of " in format_summary(stats)
     reconstruction = pycolmap.Reconstruction(str(out / "model"))
@@ -231,12 +232,13 @@ def test_principal_point_setting_and_an_explicit_mapper_override(synthetic):
     _, _, out, _ = synthetic
     refine = CameraConfig(model="SIMPLE_PINHOLE", mode="single", params=CALIBRATED.params, principal_point="refine")
     options = mapper_options([])
-    assert _principal_point(ReconstructConfig(camera=refine), out / "database.db", options).outcome == "refined"
+    config = ReconstructConfig(camera=refine)
+    assert plan_principal_point(config.camera, config.mapper, out / "database.db", options).outcome == "refined"
     assert options.ba_refine_principal_point is True
     assignment = ["ba_refine_principal_point=false"]
     options = mapper_options(assignment)
-    assert _principal_point(ReconstructConfig(camera=refine, mapper=assignment), out / "database.db",
-                            options).outcome == "set by --mapper"
+    config = ReconstructConfig(camera=refine, mapper=assignment)
+    assert plan_principal_point(config.camera, config.mapper, out / "database.db", options).outcome == "set by --mapper"
     assert options.ba_refine_principal_point is False  # the user's --mapper value is left alone
 
 

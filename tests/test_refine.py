@@ -1,4 +1,4 @@
-"""Keypoint refinement (sekd_sfm.sfm.refine): exact fixtures for each step, then a real photo under a known homography."""
+"""Keypoint refinement (sekd_sfm.stages.refine): exact fixtures for each step, then a real photo under a known homography."""
 from __future__ import annotations
 
 import json
@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from sekd_sfm.errors import SekdError
-from sekd_sfm.extract import extract_features
+from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.features import FeatureConfig
-from sekd_sfm.match import MatchConfig, match_features
-from sekd_sfm.sfm.refine import (
+from sekd_sfm.stages.match import MatchConfig, match_features
+from sekd_sfm.stages.refine import (
     AlignImage,
     RefineConfig,
     align_patches,

@@ -9,13 +9,13 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from sekd_sfm import retrieval
+from sekd_sfm.stages import retrieval
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import partstore
-from sekd_sfm.pairs import PairsConfig, make_pairs, read_pairs
-from sekd_sfm.retrieval import (
+from sekd_sfm.stages.pairs import PairsConfig, make_pairs, read_pairs
+from sekd_sfm.stages.retrieval import (
     RetrievalConfig,
     Vocabulary,
     compute_global_descriptors,
@@ -274,7 +274,7 @@ def mixed_collection(shared, folder, distractors=30):
 @pytest.mark.slow
 def test_recall_on_real_scenes_low_resolution(shared, tmp_path):
     """51 photos of 7 scenes + 30 distractors, SIFT at 320 px: same-scene neighbours are retrieved."""
-    from sekd_sfm.extract import extract_features
+    from sekd_sfm.stages.extract import extract_features
     from sekd_sfm.features import FeatureConfig
 
     truth = mixed_collection(shared, tmp_path / "images")

@@ -233,7 +233,7 @@ def test_view_frame_is_upright_behind_the_cameras(tmp_path):
     """Rows right, depth, up: up is minus the cameras' mean image-y axis, depth their mean viewing direction."""
     import pycolmap
 
-    from sekd_sfm.sfm.export import view_frame
+    from sekd_sfm.stages.export import view_frame
 
     frame = view_frame(pycolmap.Reconstruction(str(_export_folder(tmp_path) / "sparse/0")))
     assert np.allclose(frame @ frame.T, np.eye(3), atol=1e-9) and np.isclose(np.linalg.det(frame), 1)

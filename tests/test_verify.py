@@ -3,8 +3,8 @@ import time
 
 import numpy as np
 
-from sekd_sfm.sfm.colmap import open_database, require_pycolmap
-from sekd_sfm.sfm.database import VERIFY_MAX_TRIALS, two_view_options, verify_matches
+from sekd_sfm.stages.colmap import open_database, require_pycolmap
+from sekd_sfm.stages.database import VERIFY_MAX_TRIALS, two_view_options, verify_matches
 
 pycolmap = require_pycolmap()
 W, H, F = 640, 480, 500.0

@@ -93,13 +93,13 @@ def warp_photos(photos: list[Path], folder: Path, config: LocalizationConfig) ->
 def _evaluate(method: Method, images: Path, work: Path, homographies: dict, config: LocalizationConfig) -> dict:
     import h5py
 
-    from ..extract import extract_features
+    from ..stages.extract import extract_features
     from ..features import FeatureConfig
     from ..files import matches as mf
-    from ..match import MatchConfig, match_features
+    from ..stages.match import MatchConfig, match_features
     from ..model.inference import SEKDConfig
-    from ..pairs import write_pairs
-    from ..sfm.refine import refine_keypoints, refine_summary
+    from ..stages.pairs import write_pairs
+    from ..stages.refine import refine_keypoints, refine_summary
 
     folder = work / method.label
     feature_config = FeatureConfig(feature=method.feature, max_keypoints=config.max_keypoints, weights=method.weights,

@@ -21,15 +21,15 @@ import numpy as np
 
 from ..errors import SekdError
 from ..evaluation.metrics import mean_average_accuracy, pose_auc
-from ..extract import extract_features
+from ..stages.extract import extract_features
 from ..features import FeatureConfig
 from ..files.features import read_attrs, read_features
-from ..match import MatchConfig, describe_config, match_descriptors
+from ..stages.match import MatchConfig, describe_config, match_descriptors
 from ..runtime import package_versions, run_record, shared_dir
-from ..sfm.colmap import colmap_log, log_prefix, require_pycolmap
-from ..sfm.mapping import mapper_options, run_mapper
-from ..sfm.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
-from ..sfm.report import write_json
+from ..stages.colmap import colmap_log, log_prefix, require_pycolmap
+from ..stages.mapping import mapper_options, run_mapper
+from ..pipelines.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
+from ..files.atomic import write_json
 from .strecha import StrechaCamera, pairwise_errors, read_cameras, relative_pose
 
 logger = logging.getLogger("sekd")

@@ -44,7 +44,7 @@ def sfm(scene: str, output: Path | None, extraction: OptionValues, num_threads: 
     """
     from sekd_sfm.bench.methods import available, parse_method, with_weights
     from sekd_sfm.bench.sfm import benchmark_sfm, sfm_markdown
-    from sekd_sfm.pairs import PairsConfig
+    from sekd_sfm.stages.pairs import PairsConfig
 
     # Every pair, as the pycolmap baseline (exhaustive matching): the pipelines differ in features, not pairs.
     config = reconstruct_config(extraction, matching, camera, mapping, pairs=PairsConfig(mode="exhaustive"))

@@ -66,7 +66,7 @@ def export(model: Path, output: Path, fmt: str, images: Path | None, masks: Path
     if training:
         _export_for_training(model, output, images, masks, max_size, overwrite)
         return
-    from sekd_sfm.sfm.export import export_model
+    from sekd_sfm.stages.export import export_model
 
     if fmt == "ply" and output.suffix.lower() != ".ply":
         raise SekdError(f"{output}: a PLY export needs a file name ending in .ply")
@@ -76,7 +76,7 @@ def export(model: Path, output: Path, fmt: str, images: Path | None, masks: Path
 def _export_for_training(model: Path, output: Path, images: Path | None, masks: Path | None, max_size: int | None,
                          overwrite: bool) -> None:
     """Run the nerfstudio/3dgs export and print what it wrote."""
-    from sekd_sfm.sfm.export_nerfstudio import export_nerfstudio
+    from sekd_sfm.stages.export_nerfstudio import export_nerfstudio
 
     result = export_nerfstudio(model, output, images, masks, max_size, overwrite)
     sizes = sorted(set(result.sizes))

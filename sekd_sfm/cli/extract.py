@@ -6,7 +6,7 @@ from pathlib import Path
 import click
 
 from sekd_sfm.confs import output_names
-from sekd_sfm.extract import extract_features
+from sekd_sfm.stages.extract import extract_features
 
 from .options import (
     executor_options,

@@ -44,7 +44,7 @@ def georef_benchmark(scenes: tuple[str, ...], output: Path, noise_m: tuple[float
         georef_markdown,
     )
     from sekd_sfm.features import FeatureConfig
-    from sekd_sfm.sfm.reconstruct import ReconstructConfig
+    from sekd_sfm.pipelines.reconstruct import ReconstructConfig
 
     config = ReconstructConfig(features=FeatureConfig(resize_max=resize_max), seed=seed)
     report = benchmark_georef(list(scenes) or ["fountain-P11"], output, config, noise_m=noise_m or DEFAULT_NOISE_M,

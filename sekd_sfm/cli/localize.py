@@ -63,8 +63,8 @@ def localize(queries: Path, reference: Path, output: Path, num_neighbors: int, c
       sekd localize list.txt -r out -o results.txt --camera-params 2759,1520,1006,0
       sekd localize /shared/new/ -r /shared/out -o /shared/loc/results.txt --executor ray
     """
-    from sekd_sfm.sfm.localize import LocalizeConfig, log_path
-    from sekd_sfm.sfm.localize import localize as run
+    from sekd_sfm.pipelines.localize import LocalizeConfig, log_path
+    from sekd_sfm.pipelines.localize import localize as run
 
     config = LocalizeConfig(num_neighbors=num_neighbors, camera_model=camera_model, camera_params=camera_params,
                             max_error_px=max_error, min_inliers=min_inliers, seed=seed)

@@ -6,8 +6,8 @@ from pathlib import Path
 import click
 
 from sekd_sfm.confs import output_names
-from sekd_sfm.match import MATCH_MODES, match_features
-from sekd_sfm.pairs import DEFAULT_NEIGHBORS, PAIR_MODES, PairsConfig, make_pairs
+from sekd_sfm.stages.match import MATCH_MODES, match_features
+from sekd_sfm.stages.pairs import DEFAULT_NEIGHBORS, PAIR_MODES, PairsConfig, make_pairs
 from sekd_sfm.runtime import DEVICES
 
 from .options import executor_options

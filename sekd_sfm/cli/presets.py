@@ -5,7 +5,7 @@ import click
 
 from sekd_sfm.confs import CONFS, build_configs, describe_confs
 from sekd_sfm.features import FeatureConfig
-from sekd_sfm.match import MatchConfig
+from sekd_sfm.stages.match import MatchConfig
 
 from .options import USER_SOURCES, OptionValues
 

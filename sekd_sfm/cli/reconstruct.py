@@ -3,7 +3,7 @@
 The SfM commands (these and ``sekd bench sfm``) take their options in groups, each passed to the
 command as one argument (``options.option_group``): extraction, pairing, matching, camera,
 mapping, execution. ``reconstruct_config`` and ``run_settings`` turn the groups into the typed
-settings of ``sekd_sfm.sfm.reconstruct``: the one place where an option becomes a setting.
+settings of ``sekd_sfm.pipelines.reconstruct``: the one place where an option becomes a setting.
 """
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING
 import click
 
 from sekd_sfm.confs import output_names
-from sekd_sfm.pairs import PairsConfig
-from sekd_sfm.sfm.database import CAMERA_MODES, PRINCIPAL_POINT_MIN_IMAGES, PRINCIPAL_POINT_MODES, CameraConfig
+from sekd_sfm.stages.pairs import PairsConfig
+from sekd_sfm.stages.database import CAMERA_MODES, PRINCIPAL_POINT_MIN_IMAGES, PRINCIPAL_POINT_MODES, CameraConfig
 
 from .adapt import adapt_in_line, adapt_option
 from .match import match_options, pairs_config, pairs_options
@@ -31,7 +31,7 @@ from .options import (
 from .presets import conf_option, current_conf, feature_and_match_configs
 
 if TYPE_CHECKING:  # imported where used: the CLI starts without torch and pycolmap
-    from sekd_sfm.sfm.reconstruct import ReconstructConfig, RunSettings
+    from sekd_sfm.pipelines.reconstruct import ReconstructConfig, RunOptions
 
 #: reconstruct's own words on --resize-max: its default differs from extract's (full size).
 RECONSTRUCT_RESIZE_HELP = (
@@ -68,11 +68,11 @@ def _print_option_help(ctx: click.Context, param: click.Parameter, values) -> tu
     """``--mapper help`` / ``--verification help``: list the settable options and their defaults."""
     if "help" not in values:
         return values
-    from sekd_sfm.sfm.colmap import option_values, require_pycolmap
+    from sekd_sfm.stages.colmap import option_values, require_pycolmap
 
     pycolmap = require_pycolmap()
     if param.name == "mapper":  # the options of the chosen mapper (--mapper-type is eager: already parsed)
-        from sekd_sfm.sfm.mapping import default_options
+        from sekd_sfm.stages.mapping import default_options
 
         kind = ctx.params.get("mapper_type") or "auto"
         if kind == "auto":
@@ -142,7 +142,7 @@ def reconstruct_config(extraction: OptionValues, matching: OptionValues, camera:
                        *, pairs: PairsConfig, conf: str | None = None) -> ReconstructConfig:
     """The ReconstructConfig of the option groups of `reconstruct` and `bench sfm`, the --conf preset ``conf``
     applied to the options left at their defaults."""
-    from sekd_sfm.sfm.reconstruct import DEFAULT_RESIZE_MAX, ReconstructConfig
+    from sekd_sfm.pipelines.reconstruct import DEFAULT_RESIZE_MAX, ReconstructConfig
 
     features, matcher = feature_and_match_configs(extraction, matching, conf)
     features.resize_max = features.resize_max or DEFAULT_RESIZE_MAX  # see RECONSTRUCT_RESIZE_HELP
@@ -158,11 +158,11 @@ def reconstruct_config(extraction: OptionValues, matching: OptionValues, camera:
     return config
 
 
-def run_settings(execution: OptionValues, num_threads: int | None) -> RunSettings:
-    """The RunSettings of the group ``execution`` and --num-threads."""
-    from sekd_sfm.sfm.reconstruct import RunSettings
+def run_settings(execution: OptionValues, num_threads: int | None) -> RunOptions:
+    """The RunOptions of the group ``execution`` and --num-threads."""
+    from sekd_sfm.pipelines.reconstruct import RunOptions
 
-    return RunSettings(overwrite=execution["overwrite"], num_threads=num_threads,
+    return RunOptions(overwrite=execution["overwrite"], num_threads=num_threads,
                        progress=not execution["no_progress"], executor=execution["executor"],
                        ray_options=ray_options(execution))
 
@@ -230,8 +230,8 @@ def reconstruct(images: Path, output: Path, extraction: OptionValues, num_thread
       sekd reconstruct photos/ -o out/ --features hloc/feats.h5 --matches hloc/matches.h5 --pairs-file hloc/pairs.txt
       sekd reconstruct photos/ -o out/ --extend                   # add photos copied into photos/ since the run
     """
-    from sekd_sfm.sfm.reconstruct import ReconstructionError
-    from sekd_sfm.sfm.reconstruct import reconstruct as run
+    from sekd_sfm.pipelines.reconstruct import ReconstructionError
+    from sekd_sfm.pipelines.reconstruct import reconstruct as run
 
     config = reconstruct_config(extraction, matching, camera, mapping, pairs=pairs_config(**pairing.values),
                                 conf=current_conf())
@@ -243,8 +243,7 @@ def reconstruct(images: Path, output: Path, extraction: OptionValues, num_thread
         raise click.UsageError("--extend-refine goes with --extend")
     extension = _extend_options(groups, extend_refine) if extend else None
     try:
-        run(images, output, config, features=features_file, matches=matches_file, **settings.keywords(),
-            extend=extension)
+        run(images, output, config, features=features_file, matches=matches_file, options=settings, extend=extension)
     except ReconstructionError:
         _echo_summary(output)
         raise
@@ -256,7 +255,7 @@ def _extend_options(groups: dict[str, OptionValues], refine: bool):
     fields that change when it is put back to its default), to be checked against the model's record."""
     from dataclasses import asdict
 
-    from sekd_sfm.sfm.extend import ExtendOptions, flatten
+    from sekd_sfm.pipelines.extend import ExtendOptions, flatten
 
     ctx = click.get_current_context()
     defaults = {p.name: p.get_default(ctx) for p in ctx.command.params}
@@ -283,7 +282,7 @@ def _extend_options(groups: dict[str, OptionValues], refine: bool):
 
 def _echo_summary(output: Path) -> None:
     """Print the run's summary from OUTPUT/stats.json (written on success and on a failure to explain)."""
-    from sekd_sfm.sfm.report import format_summary
+    from sekd_sfm.pipelines.report import format_summary
 
     stats = output / "stats.json"
     if stats.is_file():
@@ -320,7 +319,7 @@ def relpose(image0: Path, image1: Path, extraction: OptionValues, num_threads: i
       sekd relpose a.jpg b.jpg --feature sift --camera-model PINHOLE --camera-params 2759.5,2764.2,1521.2,1007.3
     """
     from sekd_sfm.runtime import set_num_threads
-    from sekd_sfm.sfm.relpose import RelposeConfig, relative_pose
+    from sekd_sfm.pipelines.relpose import RelposeConfig, relative_pose
 
     set_num_threads(num_threads)
     features, matcher = feature_and_match_configs(extraction, matching, current_conf())

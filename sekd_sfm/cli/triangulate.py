@@ -31,9 +31,9 @@ from .reconstruct import (
 )
 
 if TYPE_CHECKING:  # imported where used: the CLI starts without torch and pycolmap
-    from sekd_sfm.sfm.triangulate import TriangulateConfig
+    from sekd_sfm.pipelines.triangulate import TriangulateConfig
 
-#: Kept in step with sekd_sfm.sfm.triangulate (not imported: the CLI starts without pycolmap).
+#: Kept in step with sekd_sfm.pipelines.triangulate (not imported: the CLI starts without pycolmap).
 PAIR_SOURCES = ("covisibility", "retrieval")
 DEFAULT_NEIGHBORS = 20
 DEFAULT_MAX_ANGLE_DEG = 60.0
@@ -43,7 +43,7 @@ def _print_triangulator_options(ctx: click.Context, _param, values) -> tuple:
     """``--mapper help``: the settable options of the triangulator (pycolmap IncrementalPipelineOptions)."""
     if "help" not in values:
         return values
-    from sekd_sfm.sfm.colmap import option_values, require_pycolmap
+    from sekd_sfm.stages.colmap import option_values, require_pycolmap
 
     options = require_pycolmap().IncrementalPipelineOptions()
     for name, value in option_values(options):
@@ -92,8 +92,8 @@ triangulation_options = option_group(
 def triangulate_config(extraction: OptionValues, matching: OptionValues, pairing: OptionValues,
                        camera: OptionValues, triangulation: OptionValues, conf: str | None) -> TriangulateConfig:
     """The TriangulateConfig of the option groups, the --conf preset ``conf`` applied to the defaulted options."""
-    from sekd_sfm.sfm.reconstruct import DEFAULT_RESIZE_MAX
-    from sekd_sfm.sfm.triangulate import TriangulateConfig
+    from sekd_sfm.pipelines.reconstruct import DEFAULT_RESIZE_MAX
+    from sekd_sfm.pipelines.triangulate import TriangulateConfig
 
     features, matcher = feature_and_match_configs(extraction, matching, conf)
     features.resize_max = features.resize_max or DEFAULT_RESIZE_MAX  # as reconstruct (RECONSTRUCT_RESIZE_HELP)
@@ -145,8 +145,8 @@ def triangulate(photos: Path, poses: Path, output: Path, extraction: OptionValue
       sekd triangulate photos/ --poses poses.txt --camera-model PINHOLE --camera-params 2759.5,2764.2,1521.2,1007.3 -o out/
       sekd triangulate photos/ --poses poses.txt -o out/ --pairs retrieval --num-neighbors 30
     """
-    from sekd_sfm.sfm.triangulate import format_triangulation
-    from sekd_sfm.sfm.triangulate import triangulate as run
+    from sekd_sfm.pipelines.triangulate import format_triangulation
+    from sekd_sfm.pipelines.triangulate import triangulate as run
 
     config = triangulate_config(extraction, matching, pairing, camera, triangulation, current_conf())
     run(photos, poses, output, config, overwrite=execution["overwrite"], num_threads=num_threads,

@@ -79,7 +79,7 @@ def _strecha_scene(folder: Path) -> PoseScene:
 
 
 def _colmap_scene(folder: Path, model: Path) -> PoseScene:
-    from ..sfm.colmap import require_pycolmap
+    from ..stages.colmap import require_pycolmap
 
     reconstruction = require_pycolmap().Reconstruction(str(model))
     cameras = {}

@@ -3,16 +3,21 @@
 An executor runs a :class:`~sekd_sfm.execution.stage.Stage` (a worker class, its arguments, the
 batches of keys) and owns everything around the computation: the part store, progress, Ctrl-C
 and resume, the merge into the output file. It knows nothing about features or matches; the
-stages (``sekd_sfm.extract``, ``sekd_sfm.match``) know nothing about Ray. Imports run one way:
+stages (``sekd_sfm.stages.extract``, ``sekd_sfm.stages.match``) know nothing about Ray. Imports run one way:
 stages -> execution -> files.
 
     with open_executor("ray", RayOptions(threads_per_worker=2)) as executor:
         executor.run(stage, parts, on_error, attrs=lambda: {"failed_images": "[]"})
+
+``open_executor`` is the one place an executor's name and options are checked. A pipeline opens
+one executor for its whole run (``sekd_sfm.pipelines.run.Run``) and hands it to every stage;
+a stage called on its own with a name opens one for itself (``using``).
 """
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Protocol
 
 from ..files import partstore
@@ -26,7 +31,6 @@ from .ray_connect import (
     address_variable,
     check_executor,
     driver_merges_while_running,
-    session,
 )
 from .ray_pool import task_size
 from .stage import OnError, Result, Stage, Worker
@@ -36,7 +40,13 @@ Attrs = Callable[[], "dict | None"]
 
 
 class Executor(Protocol):
-    """Runs stages; a context manager (a Ray executor holds its connection for every stage run inside it)."""
+    """Runs stages; a context manager (a Ray executor holds its connection for every stage run inside it).
+
+    ``name``: ``local`` or ``ray``. ``virtual_merge``: whether results reach the output as shard files it
+    references (``--ray-merge virtual``), which cannot replace an item in place."""
+
+    name: str
+    virtual_merge: bool
 
     def __enter__(self) -> Executor: ...
 
@@ -48,6 +58,9 @@ class Executor(Protocol):
 
 class LocalExecutor:
     """Runs a stage in this process."""
+
+    name = "local"
+    virtual_merge = False
 
     def __enter__(self) -> LocalExecutor:
         return self
@@ -67,9 +80,15 @@ class RayExecutor:
     """Runs stages on a Ray cluster; connects at the first stage with work (not for a run with nothing to do)
     and, if it connected (or started a local cluster), disconnects when the block ends."""
 
+    name = "ray"
+
     def __init__(self, options: RayOptions | None = None):
         self.options = options or RayOptions()
         self.ray, self.owned = None, False
+
+    @property
+    def virtual_merge(self) -> bool:
+        return self.options.merge == "virtual"
 
     def __enter__(self) -> RayExecutor:
         return self
@@ -106,10 +125,21 @@ def open_executor(name: str, options: RayOptions | None = None) -> LocalExecutor
     return RayExecutor(options) if name == "ray" else LocalExecutor()
 
 
+@contextmanager
+def using(executor: str | Executor, options: RayOptions | None = None) -> Iterator[Executor]:
+    """The executor to run a stage with: ``executor`` itself when it is one (a pipeline's, left open for its next
+    stages), else a new one of that name, opened here and closed when the block ends."""
+    if not isinstance(executor, str):
+        yield executor
+        return
+    with open_executor(executor, options) as opened:
+        yield opened
+
+
 def _finish(stage: Stage, parts: partstore.PartStore, attrs: Attrs | None, merge: partstore.Merge | None = None) -> int:
     parts.flush()  # on disk before the merge: a merge that fails or is killed loses nothing
     return partstore.finish_run(stage.output, parts, attrs() if attrs else None, stage.write_group, stage.items, merge)
 
 
 __all__ = ["EXECUTORS", "MERGES", "RAY_INSTALL", "Executor", "LocalExecutor", "OnError", "RayExecutor", "RayOptions",
-           "Result", "Stage", "Worker", "address_variable", "check_executor", "open_executor", "session", "task_size"]
+           "Result", "Stage", "Worker", "address_variable", "check_executor", "open_executor", "task_size", "using"]

@@ -1,4 +1,4 @@
-"""Ray connection: where the cluster is, connecting (or starting a local one), one session for several stages.
+"""Ray connection: where the cluster is, connecting (or starting a local one).
 
 Ray (the optional extra ``sekd-sfm[ray]``) is imported only when a run asks for it.
 """
@@ -267,27 +267,6 @@ def _cluster_messages_to_log(ray) -> None:
     module.print_to_stdstream = to_log
 
 
-@contextmanager
-def session(executor: str, options: RayOptions | None = None) -> Iterator[None]:
-    """One Ray connection for several stages (``sekd reconstruct``: extraction, then matching).
-
-    Inside it, ``extract_on_ray`` / ``match_on_ray`` find Ray connected and leave it so; a local
-    cluster started for the run (no cluster here) is started and stopped once, not per stage.
-    Does nothing for the local executor.
-    """
-    if executor != "ray":
-        yield
-        return
-    options = options or RayOptions()
-    check_executor(executor, options)
-    ray, owned = _connect(options)
-    try:
-        yield
-    finally:
-        if owned:
-            ray.shutdown()
-
-
 def _check_reachable(address: str, timeout: float = 5.0, what: str = "--ray-address") -> None:
     """SekdError at once when nothing listens at ``HOST:PORT`` (Ray itself would retry for minutes).
 
@@ -323,7 +302,7 @@ def driver_merges_while_running(options: RayOptions | None = None) -> bool:
     on it was given (a login node, a head node started with ``--num-cpus 0``): there the copy
     overlaps the workers' work, and the merge left at the end is the last tasks' chunks. Where
     Ray holds every core (a one-machine cluster), copying during the run slowed the workers by
-    more than it saved at the end (docs/cluster.md, run M). Call it connected (``session``).
+    more than it saved at the end (docs/cluster.md, run M). Call it connected (``RayExecutor.run``).
     """
     options = options or RayOptions()
     ray = _import_ray()

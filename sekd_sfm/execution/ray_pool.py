@@ -57,7 +57,7 @@ def _stream(ray, tasks: list[dict[str, np.ndarray]], actor: type, args: tuple, w
     finish (any order).
 
     Leaving the context stops the actors, which frees their CPUs and GPUs for the next stage
-    of the same connection (``session``).
+    of the same connection (one RayExecutor per run).
     """
     # A killed worker process is restarted (its constructor runs again) whenever the cluster has
     # room; its unfinished calls fail at once (no retries at the same actor) and go to whichever

@@ -10,6 +10,7 @@ the name keeps two processes from writing the same temporary file, and lets
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 from collections.abc import Iterator
@@ -72,3 +73,11 @@ def remove_folder(path: str | Path) -> None:
         trash = temp_name(path)
         os.replace(path, trash)
         shutil.rmtree(trash, ignore_errors=True)
+
+
+def write_json(data: dict, path: Path) -> Path:
+    """Write ``data`` as indented JSON at ``path`` atomically (``<name>.tmp``, then a rename); returns ``path``."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=False))
+    os.replace(tmp, path)
+    return path

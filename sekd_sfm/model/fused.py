@@ -16,7 +16,7 @@ a PyTorch build lacks it or cannot run it, ``FastSEKD`` keeps the eager network)
 The decoder's grouped transposed convolutions run as their dense block-diagonal equivalent
 (``network.BlockDiagonalConvTranspose2d``), with the dense weight built once here instead of
 at every call. Results equal the eager network's to float round-off (the folded BatchNorm
-rounds once instead of twice). ``pipelines/bench_fused.py`` measures the gain.
+rounds once instead of twice). ``scripts/bench_fused.py`` measures the gain.
 """
 from __future__ import annotations
 

@@ -76,8 +76,8 @@ def camera_movement(base_model: Path, extended_model: Path) -> dict:
     and whether each kept its image id."""
     import numpy as np
 
-    from ...sfm.colmap import require_pycolmap
-    from ...sfm.extend import pose_matrix
+    from ...stages.colmap import require_pycolmap
+    from ...pipelines.extend import pose_matrix
 
     pycolmap = require_pycolmap()
     before, after = pycolmap.Reconstruction(str(base_model)), pycolmap.Reconstruction(str(extended_model))

@@ -31,15 +31,15 @@ import numpy as np
 from ...evaluation.strecha import read_cameras
 from ...files.gps import GPSPosition, write_gps
 from ...runtime import package_versions, run_record
-from ...sfm.georef import (
+from ...stages.georef import (
     GpsConfig,
     camera_centres,
     enu_from_geodetic,
     geodetic_from_enu,
     robust_similarity,
 )
-from ...sfm.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
-from ...sfm.report import write_json
+from ...pipelines.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
+from ...files.atomic import write_json
 from ..sfm import resolve_scene
 
 logger = logging.getLogger("sekd")
@@ -137,7 +137,7 @@ def run_level(scene: Path, work: Path, truth: dict[str, np.ndarray], sigma_m: fl
     georef_file = out / "georef.json"
     if failure is None and georef_file.is_file():
         georef = json.loads(georef_file.read_text())
-        from ...sfm.colmap import require_pycolmap
+        from ...stages.colmap import require_pycolmap
 
         centres = camera_centres(require_pycolmap().Reconstruction(str(out / "model")))
         in_frame = _truth_in_model_frame(truth, DEFAULT_ORIGIN, georef)

@@ -37,18 +37,18 @@ from ...evaluation.strecha import read_cameras
 from ...features import FeatureConfig
 from ...files.images import list_images
 from ...files.poses import pose_line, read_poses
-from ...match import match_descriptors
+from ...stages.match import match_descriptors
 from ...runtime import package_versions, run_record, shared_dir
-from ...sfm.colmap import colmap_log, log_prefix, open_database, require_pycolmap
-from ...sfm.database import camera_key
-from ...sfm.localize import (
+from ...stages.colmap import colmap_log, log_prefix, open_database, require_pycolmap
+from ...stages.database import camera_key
+from ...pipelines.localize import (
     LocalizeConfig,
     estimate_pose,
     localize,
 )
-from ...sfm.mapping import mapper_options, run_mapper
-from ...sfm.reconstruct import ReconstructConfig, reconstruct
-from ...sfm.report import write_json
+from ...stages.mapping import mapper_options, run_mapper
+from ...pipelines.reconstruct import ReconstructConfig, reconstruct
+from ...files.atomic import write_json
 from ..sfm import poses_of as model_poses
 
 logger = logging.getLogger("sekd")

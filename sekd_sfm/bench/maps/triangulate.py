@@ -20,10 +20,10 @@ import numpy as np
 
 from ...evaluation.strecha import StrechaCamera, read_cameras
 from ...runtime import package_versions, run_record
-from ...sfm.colmap import require_pycolmap
-from ...sfm.reconstruct import ReconstructConfig, reconstruct
-from ...sfm.report import write_json
-from ...sfm.triangulate import TriangulateConfig, triangulate, triangulation_stats
+from ...stages.colmap import require_pycolmap
+from ...pipelines.reconstruct import ReconstructConfig, reconstruct
+from ...files.atomic import write_json
+from ...pipelines.triangulate import TriangulateConfig, triangulate, triangulation_stats
 from ..sfm import evaluate, resolve_scene
 
 

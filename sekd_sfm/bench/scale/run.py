@@ -86,7 +86,7 @@ def _generate(scene_dir: str, config: SceneConfig) -> dict:
 def _ours(image_dir: str, work: str, config, num_threads: int | None) -> dict:
     import time
 
-    from ...sfm.reconstruct import ReconstructionError, reconstruct
+    from ...pipelines.reconstruct import ReconstructionError, reconstruct
 
     start = time.time()  # after the imports (torch): the stage timeline starts here
     try:
@@ -97,7 +97,7 @@ def _ours(image_dir: str, work: str, config, num_threads: int | None) -> dict:
 
 
 def _colmap_extract(database: str, image_dir: str, max_image_size: int, num_threads: int | None) -> dict:
-    import pycolmap  # not sekd_sfm.sfm, which loads torch: the baseline's memory is pycolmap's alone
+    import pycolmap  # not sekd_sfm.stages, which loads torch: the baseline's memory is pycolmap's alone
 
     options = pycolmap.FeatureExtractionOptions()
     options.max_image_size, options.num_threads = max_image_size, num_threads or -1
@@ -107,7 +107,7 @@ def _colmap_extract(database: str, image_dir: str, max_image_size: int, num_thre
 
 
 def _colmap_match(database: str, pairs_path: str | None, num_threads: int | None) -> dict:
-    import pycolmap  # not sekd_sfm.sfm, which loads torch: the baseline's memory is pycolmap's alone
+    import pycolmap  # not sekd_sfm.stages, which loads torch: the baseline's memory is pycolmap's alone
 
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = num_threads or -1
@@ -123,7 +123,7 @@ def _colmap_match(database: str, pairs_path: str | None, num_threads: int | None
 
 
 def _colmap_verify(database: str, num_threads: int | None) -> dict:
-    import pycolmap  # not sekd_sfm.sfm, which loads torch: the baseline's memory is pycolmap's alone
+    import pycolmap  # not sekd_sfm.stages, which loads torch: the baseline's memory is pycolmap's alone
 
     options = pycolmap.GeometricVerifierOptions()
     options.num_threads = num_threads or -1
@@ -132,7 +132,7 @@ def _colmap_verify(database: str, num_threads: int | None) -> dict:
 
 
 def _colmap_map(database: str, image_dir: str, model_dir: str, seed: int) -> dict:
-    import pycolmap  # not sekd_sfm.sfm, which loads torch: the baseline's memory is pycolmap's alone
+    import pycolmap  # not sekd_sfm.stages, which loads torch: the baseline's memory is pycolmap's alone
 
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
@@ -155,7 +155,7 @@ def registered_poses(model_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]
     """World-to-camera ``(R, t)`` of the registered images of a COLMAP model folder (empty if none)."""
     if not (model_dir / "images.bin").is_file() and not (model_dir / "images.txt").is_file():
         return {}
-    from ...sfm.colmap import require_pycolmap
+    from ...stages.colmap import require_pycolmap
     from ..sfm import poses_of
 
     return poses_of(require_pycolmap().Reconstruction(str(model_dir)))
@@ -241,7 +241,7 @@ def retrieval_recall(global_file: Path, names: list[str], truth_pairs: dict, k: 
     """
     if not global_file.is_file():
         return None
-    from ...retrieval import nearest_neighbors, neighbour_recall
+    from ...stages.retrieval import nearest_neighbors, neighbour_recall
 
     truth: dict[str, set[str]] = {}
     for a, b in (tuple(p) for p in truth_pairs):
@@ -304,8 +304,8 @@ def run_pycolmap(scene_dir: Path, work: Path, pairs: list[tuple[str, str]], num_
     exhaustive = len(pairs) == num_images * (num_images - 1) // 2
     pairs_path = None
     if not exhaustive:
-        # Imported here, not at the top: sekd_sfm.pairs loads torch, and the baseline's child processes import this module.
-        from ...pairs import format_pairs
+        # Imported here, not at the top: sekd_sfm.stages.pairs loads torch, and the baseline's child processes import this module.
+        from ...stages.pairs import format_pairs
 
         pairs_path = work / COLMAP_PAIRS
         pairs_path.write_text(format_pairs(pairs))
@@ -331,9 +331,9 @@ def run_pycolmap(scene_dir: Path, work: Path, pairs: list[tuple[str, str]], num_
 
 def our_config(reconstruct_config) -> dict:
     """Our pipeline's configuration as its stats.json records it (JSON types), to tell whether a result is current."""
-    from ...sfm.reconstruct import _config_dict
+    from ...pipelines.config import config_dict
 
-    return json.loads(json.dumps(_config_dict(reconstruct_config), default=str))
+    return json.loads(json.dumps(config_dict(reconstruct_config), default=str))
 
 
 def reusable_baseline(previous: dict | None, work: Path, pairs: list[tuple[str, str]], config: ScaleConfig) -> dict | None:
@@ -342,7 +342,7 @@ def reusable_baseline(previous: dict | None, work: Path, pairs: list[tuple[str, 
     Same scene settings, same pairs (its pairs file), same pycolmap version: its pipeline is
     deterministic (seeded, one mapping thread) and would give the same model, so only our pipeline reruns.
     """
-    from ...pairs import format_pairs
+    from ...stages.pairs import format_pairs
     from ...runtime import package_versions
 
     if not previous or "pycolmap" not in previous or previous["pycolmap"].get("failure"):
@@ -411,7 +411,7 @@ def run_size(out: Path, size: int, config: ScaleConfig, reconstruct_config, prev
               "generate": generation or {"time_s": scene["generation_s"]}, "scene": scene["config"]}
     logger.info("n=%d: our pipeline", size)
     ours = run_ours(scene_dir, out / "ours", reconstruct_config, config.num_threads)
-    from ...pairs import read_pairs
+    from ...stages.pairs import read_pairs
 
     pairs = read_pairs(out / "ours" / "pairs.txt") if (out / "ours" / "pairs.txt").is_file() else []
     ours.update(evaluate_model(Path(ours["model"]), scene, covisible))
@@ -450,7 +450,7 @@ def run_scale_benchmark(output_dir: str | Path, config: ScaleConfig, reconstruct
     takes the sizes nobody is running (so two processes can share the sizes of one folder)
     and the report covers every finished size.
     """
-    from ...sfm.reconstruct import ReconstructConfig
+    from ...pipelines.reconstruct import ReconstructConfig
 
     reconstruct_config = reconstruct_config or ReconstructConfig()
     out = Path(output_dir)

@@ -1,0 +1,362 @@
+"""The whole pipeline (``sekd reconstruct``): images -> features -> pairs -> matches -> database -> model -> report.
+
+``RECONSTRUCT`` lists its steps in order; each is ``step(run, state) -> state`` over a ``Reconstruction``
+(``run.py``). The files it writes in the output folder are named in ``record.py``. Features and
+matches made with the same configuration are reused; features/matches given by the caller are
+read in place instead. The run holds the folder's lock from start to end, so whatever a killed
+run left behind (the mapper's ``mapping-*`` scratch folders, ``colmap.log.*`` pieces) is removed
+at the start.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import SekdError
+from ..execution import RayOptions
+from ..files import features as ff
+from ..files import matches as mf
+from ..files.images import list_images
+from ..runtime import package_versions
+from ..stages.colmap import clean_logs, colmap_log, log_prefix, require_pycolmap
+from ..stages.database import (
+    check_principal_point_mode,
+    create_database,
+    parse_camera_params,
+    two_view_options,
+    verify_matches,
+)
+from ..stages.extract import changed_masks, extract_features
+from ..stages.georef import GpsPlan, georeference, photo_names, plan_gps, write_georef
+from ..stages.mapping import (
+    clean_scratch,
+    mapper_options,
+    min_num_matches,
+    model_stats,
+    registered_names,
+    resolve_mapper_type,
+    run_mapper,
+    write_models,
+)
+from ..stages.match import match_features
+from ..stages.pairs import PairsConfig, make_pairs, read_pairs, write_pairs
+from ..stages.principal_point import PrincipalPointPlan, plan_principal_point
+from ..stages.refine import refine_keypoints, refine_summary
+from . import record
+from .config import DEFAULT_MAPPER, DEFAULT_RESIZE_MAX, ReconstructConfig, config_dict
+from .extend import ExtendOptions, extend_model
+from .report import (
+    ReconstructionError,
+    check_enough_matches,
+    explain_models,
+    explain_no_model,
+    match_statistics,
+    summarize_matches,
+    unregistered_report,
+)
+from .run import Run, RunOptions, Step, run_steps
+
+logger = logging.getLogger("sekd")
+
+__all__ = ["DEFAULT_MAPPER", "DEFAULT_RESIZE_MAX", "RECONSTRUCT", "ReconstructConfig", "Reconstruction", "RunOptions",
+           "distinct_models", "reconstruct"]
+
+
+@dataclass
+class Reconstruction:
+    """What the steps of ``RECONSTRUCT`` have made so far, and the record they fill (``stats``).
+
+    ``features`` / ``matches``: the caller's files, else those the steps make in OUT; ``keypoints``:
+    what the database gets (the refined keypoints, or the features); ``options`` / ``two_view``: pycolmap's
+    mapper and verification options; ``log``: COLMAP's log, open from the database step to the run's end.
+    """
+
+    image_dir: Path
+    config: ReconstructConfig
+    stats: dict
+    features: Path | None = None
+    matches: Path | None = None
+    pairs: Path | None = None
+    keypoints: Path | None = None
+    database: Path | None = None
+    log: Path | None = None
+    options: Any = None
+    two_view: Any = None
+    gps: GpsPlan | None = None
+    principal_point: PrincipalPointPlan | None = None
+    match_stats: dict = field(default_factory=dict)
+    models: list = field(default_factory=list)
+    model: Path | None = None
+    #: Photos were extracted again because their mask changed: the reused matches of their pairs are stale.
+    rematch: bool = False
+
+
+def reconstruct(image_dir: str | Path, output_dir: str | Path, config: ReconstructConfig | None = None, *,
+                overwrite: bool = False, num_threads: int | None = None, progress: bool = True,
+                features: str | Path | None = None, matches: str | Path | None = None, executor: str = "local",
+                ray_options: RayOptions | None = None, extend: ExtendOptions | None = None,
+                options: RunOptions | None = None) -> Path:
+    """Reconstruct the images below ``image_dir`` into ``output_dir``; returns the main model's folder.
+
+    Runs the missing stages (extract, pairs, match) and reuses existing outputs made with
+    the same configuration. ``features`` (a feature file of sekd or hloc) replaces extraction;
+    ``matches`` (a match file, needs ``features``) replaces pairs and matching: its pairs are
+    those of ``config.pairs.file`` when set, else all the pairs it holds. Both are read in
+    place, never modified. When the images split into several models each is written
+    (``model/`` the largest, ``models/1``, ...) and the split is logged as a warning.
+    How the run runs: ``options`` (a RunOptions), or its fields ``overwrite``, ``num_threads``, ``progress``,
+    ``executor`` and ``ray_options`` as keywords (where extraction and matching run: ``sekd_sfm.execution``).
+    Raises ReconstructionError, after writing the record and keeping the database, when no
+    model comes out; SekdError when another process is using ``output_dir``.
+    ``extend``: add the photos ``output_dir``'s model lacks to it instead, with its recorded settings (extend.py).
+    """
+    require_pycolmap()
+    config = config or ReconstructConfig()
+    options = options or RunOptions(overwrite=overwrite, num_threads=num_threads, progress=progress,
+                                    executor=executor, ray_options=ray_options)
+    image_dir, out = Path(image_dir), Path(output_dir)
+    _check_inputs(image_dir, features, matches)
+    if extend is not None:
+        if features is not None or options.overwrite:
+            raise SekdError("--extend adds photos to OUTPUT's own files: leave out --features, --matches, --overwrite")
+        return extend_model(image_dir, out, extend, options, weights=config.features.weights)
+    state = Reconstruction(image_dir, config, _new_record(image_dir, config, features, matches),
+                           features=Path(features) if features else None, matches=Path(matches) if matches else None)
+    with Run(out, options, lock="reconstruction folder") as run:
+        clean_scratch(out)  # left by a killed run: nobody else can be using them while we hold the lock
+        clean_logs(out / record.COLMAP_LOG)
+        return _recorded(run, state)
+
+
+def _check_inputs(image_dir: Path, features: str | Path | None, matches: str | Path | None) -> None:
+    if not image_dir.is_dir():
+        raise SekdError(f"{image_dir}: not a folder of images; give the folder holding the photos")
+    if matches is not None and features is None:
+        raise SekdError(f"--matches {matches}: also give the feature file these matches index (--features)")
+    for what, path in (("--features", features), ("--matches", matches)):
+        if path is not None and not Path(path).is_file():
+            raise SekdError(f"{what} {path}: no such file; give an existing HDF5 file or leave {what} out")
+
+
+def _new_record(image_dir: Path, config: ReconstructConfig, features, matches) -> dict:
+    return {"status": "running", "failure": None, "config": config_dict(config), "versions": package_versions(),
+            "images_dir": str(image_dir), "inputs": {"features": str(features) if features else None,
+                                                     "matches": str(matches) if matches else None}}
+
+
+def _recorded(run: Run, state: Reconstruction) -> Path:
+    """``RECONSTRUCT`` over ``state``; the record says how it ended, success or a failure to explain."""
+    stats = state.stats
+    try:
+        state = run_steps(run, RECONSTRUCT, state)
+        stats["status"] = "ok"
+        return state.model
+    except ReconstructionError as exc:
+        stats["status"], stats["failure"] = "failed", str(exc).splitlines()[0]
+        stats["failure_details"] = str(exc)
+        raise
+    finally:
+        stats["timings_s"] = run.timings()
+        if stats["status"] != "running":
+            record.write_record(stats, run.out)
+
+
+# ----------------------------------------------------------------------------- the steps, in order
+
+def check_options(run: Run, s: Reconstruction) -> Reconstruction:
+    """pycolmap's mapper and two-view options of the configuration, every option checked first (a typo fails in a
+    second, not after extraction and matching); the mapper type resolved for the collection's size; the GPS plan."""
+    config = s.config
+    count = _num_photos(s.image_dir, s.features) if config.mapper_type == "auto" else 0  # only auto looks at the size
+    mapper_type = resolve_mapper_type(config.mapper_type, count)
+    s.stats["mapper_type"] = mapper_type
+    s.options = mapper_options(config.mapper, config.seed, mapper_type)
+    s.two_view = two_view_options(config.verification, config.seed)
+    parse_camera_params(config.camera.model, config.camera.params)
+    check_principal_point_mode(config.camera.principal_point)
+    s.gps = plan_gps(s.image_dir, photo_names(s.image_dir, s.features), config.gps)
+    return s
+
+
+def extract(run: Run, s: Reconstruction) -> Reconstruction:
+    """OUT's feature file (made or resumed), or a check of the caller's."""
+    masks = Path(s.config.masks) if s.config.masks else None
+    if s.features is not None:
+        ff.read_attrs(s.features)  # sekd or hloc, else one clear error
+        if masks is not None:
+            logger.warning("warning: --masks %s: not applied to --features %s, which is used as it is", masks,
+                           s.features)
+        return s
+    output = run.out / s.config.file_names[0]
+    s.rematch = bool(changed_masks(output, masks))
+    if s.rematch and not run.options.overwrite:
+        logger.info("matching every pair again: photos are extracted again (their masks changed)")
+    s.features = extract_features(s.image_dir, output, s.config.features, overwrite=run.options.overwrite,
+                                  num_threads=run.num_threads, progress=run.progress, executor=run.executor,
+                                  masks=masks)
+    return s
+
+
+def pairs(run: Run, s: Reconstruction) -> Reconstruction:
+    """OUT's pairs file: the pairs chosen among the features' images (plus GPS neighbours), or those of the
+    caller's matches."""
+    path = run.out / record.PAIRS
+    if s.matches is None:
+        s.pairs = make_pairs(s.features, path, s.config.pairs, progress=run.progress,
+                             gps=s.gps.neighbors(s.config.gps))
+    else:
+        listed = read_pairs(s.config.pairs.file) if s.config.pairs.file else _stored_pairs(s.matches)
+        s.pairs = write_pairs(listed, path)  # the record of what was imported
+    return s
+
+
+def match(run: Run, s: Reconstruction) -> Reconstruction:
+    """OUT's match file (made or resumed), unless the caller gave one."""
+    if s.matches is None:
+        s.matches = match_features(s.features, s.pairs, run.out / s.config.file_names[1], s.config.matching,
+                                   overwrite=run.options.overwrite or s.rematch, num_threads=run.num_threads,
+                                   progress=run.progress, executor=run.executor)
+    s.stats["matching"] = _matching_config(s.matches)
+    return s
+
+
+def refine(run: Run, s: Reconstruction) -> Reconstruction:
+    """The keypoints moved to where their matches agree (``stages.refine``)."""
+    s.keypoints = refine_keypoints(s.features, s.matches, read_pairs(s.pairs), s.image_dir,
+                                   run.out / record.refined_name(s.config.file_names[0]), s.config.refine,
+                                   progress=run.progress)
+    s.stats["refine"] = refine_summary(s.keypoints)
+    return s
+
+
+def database(run: Run, s: Reconstruction) -> Reconstruction:
+    """COLMAP's database of the keypoints (refined, or as extracted) and matches; COLMAP's log goes to OUT from here
+    to the run's end."""
+    s.log = run.hold(colmap_log(run.out / record.COLMAP_LOG))
+    s.database = run.out / record.DATABASE
+    s.keypoints = s.keypoints or s.features
+    create_database(s.image_dir, s.keypoints, s.matches, read_pairs(s.pairs), s.database, s.config.camera)
+    return s
+
+
+def principal_point(run: Run, s: Reconstruction) -> Reconstruction:
+    """The principal-point plan of the cameras (``stages.principal_point``: ``auto`` maps with it fixed, then
+    tests it); sets the mapper's refinement in the options. An explicit ``--mapper ...refine_principal_point=...``
+    wins."""
+    s.principal_point = plan_principal_point(s.config.camera, s.config.mapper, s.database, s.options)
+    _record_principal_point(s)
+    return s
+
+
+def verification(run: Run, s: Reconstruction) -> Reconstruction:
+    """Geometric verification of every pair (pycolmap, on the run's threads)."""
+    verify_matches(s.database, s.two_view, run.num_threads or -1)
+    return s
+
+
+def match_report(run: Run, s: Reconstruction) -> Reconstruction:
+    """The verified matches' statistics; ReconstructionError when too few to map."""
+    s.match_stats = match_statistics(s.database, min_num_matches(s.options))
+    s.stats["matches"] = summarize_matches(s.match_stats)
+    check_enough_matches(s.match_stats, s.database)
+    return s
+
+
+def mapping(run: Run, s: Reconstruction) -> Reconstruction:
+    """The models (largest first), filtered after mapping, the principal point settled."""
+    filtered: list = []
+    s.models = run_mapper(s.database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
+                          final_filter=s.config.final_filter, records=filtered)
+    s.stats["final_filter"] = filtered[0] if filtered else None
+    s.models = s.principal_point.settle(s.models, run.out, s.options, run.progress, log_prefix(s.log))
+    _record_principal_point(s)
+    return s
+
+
+def georeferencing(run: Run, s: Reconstruction) -> Reconstruction:
+    """The main model moved into a local east-north-up frame from the photos' GPS, where the plan says so."""
+    georef = georeference(s.models, s.gps, s.config.gps, s.config.seed)  # models[0] moved into the ENU frame
+    s.stats["georeference"] = {k: v for k, v in georef.items() if k != "per_image"}
+    s.model = _finish(s.models, s.match_stats, s.options, run.out, s.stats, s.database)
+    write_georef(run.out, georef)
+    return s
+
+
+#: ``sekd reconstruct``, step by step (untimed steps are checks and bookkeeping, not stages of the record's timings).
+RECONSTRUCT: tuple[Step, ...] = (
+    Step("options", check_options, timed=False),
+    Step("extract", extract),
+    Step("pairs", pairs),
+    Step("match", match),
+    Step("refine", refine, when=lambda s: s.config.refine.enabled),
+    Step("database", database),
+    Step("principal point", principal_point, timed=False),
+    Step("verification", verification),
+    Step("match report", match_report, timed=False),
+    Step("mapping", mapping),
+    Step("georeference", georeferencing, timed=False),
+)
+
+
+def _record_principal_point(s: Reconstruction) -> None:
+    s.stats["principal_point"], s.stats["principal_point_decision"] = (s.principal_point.outcome,
+                                                                       s.principal_point.details())
+
+
+def _num_photos(image_dir: Path, features: str | Path | None) -> int:
+    """The photos to map: the feature file's images when given, else those below ``image_dir`` (0 if none:
+    extraction then says so, after the options are checked)."""
+    try:
+        return len(ff.list_keys(Path(features))) if features is not None else len(list_images(image_dir))
+    except (SekdError, OSError):
+        return 0
+
+
+def _stored_pairs(matches: Path) -> list:
+    try:
+        return mf.list_pairs(matches)
+    except (OSError, KeyError) as exc:
+        raise SekdError(f"{matches}: cannot list its pairs ({exc}); give them with --pairs-file") from None
+
+
+def _matching_config(matches: Path) -> dict:
+    """The match file's configuration (defaults resolved, e.g. the ratio); a placeholder for foreign files."""
+    try:
+        return json.loads(ff.read_attrs(matches, mf.FORMAT)["config"])
+    except (SekdError, KeyError, ValueError):
+        return {"source": str(matches)}
+
+
+def distinct_models(models: list) -> tuple[list, int]:
+    """Drop sub-models whose images all lie in a larger one (the mapper's failed early starts).
+
+    ``models`` is largest first. Returns the kept models and how many were dropped.
+    """
+    kept, seen = [], []
+    for model in models:
+        names = set(registered_names(model))
+        if not any(names <= other for other in seen):
+            kept.append(model)
+            seen.append(names)
+    return kept, len(models) - len(kept)
+
+
+def _finish(models: list, match_stats: dict, options, out: Path, stats: dict, database: Path) -> Path:
+    if not models:
+        raise explain_no_model(match_stats, options, database)
+    models, stats["dropped_submodels"] = distinct_models(models)
+    paths = write_models(models, out)
+    groups = [registered_names(m) for m in models]
+    stats["model"] = model_stats(models[0])
+    stats["models"] = [{"path": str(p), **model_stats(m), "images": names} for p, m, names in zip(paths, models, groups)]
+    in_a_model = {name for names in groups for name in names}
+    stats["unregistered"] = unregistered_report(sorted(set(match_stats["images"]) - in_a_model), match_stats)
+    stats["output"] = str(paths[0])
+    if len(models) > 1:
+        message = explain_models(groups, match_stats, paths)
+        stats["split"] = message.splitlines()[0]
+        logger.warning("%s", message)
+    return paths[0]

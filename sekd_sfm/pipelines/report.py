@@ -1,0 +1,187 @@
+"""Match statistics from the database, failure explanations, stats.json and the summary screen."""
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SekdError
+from ..stages.colmap import open_database, require_pycolmap
+
+
+class ReconstructionError(SekdError):
+    """The reconstruction failed or is incomplete; the message's first line says what, the rest why."""
+
+
+class StageTimer:
+    """Wall time of each named stage: ``with timer("extract"): ...`` sets ``timer.seconds["extract"]`` (s, 3 decimals)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = round(time.perf_counter() - start, 3)
+
+
+def match_statistics(database: str | Path, min_inliers: int) -> dict:
+    """Per image and per pair counts from a verified database.
+
+    ``pairs``: ``(name0, name1, raw matches, verified inliers)`` sorted by inliers, decreasing;
+    ``images``: name -> keypoints, pairs with >= ``min_inliers`` inliers, best inlier count.
+    """
+    pycolmap = require_pycolmap()
+    with open_database(database) as db:
+        names = {image.image_id: image.name for image in db.read_all_images()}
+        keypoints = {names[i]: int(db.num_keypoints_for_image(i)) for i in names}
+        raw = dict(zip(*db.read_num_matches()))
+        inliers = dict(zip(*db.read_two_view_geometry_num_inliers()))
+    pairs = []
+    for pair_id in sorted(set(raw) | set(inliers)):
+        a, b = pycolmap.pair_id_to_image_pair(pair_id)
+        pairs.append((names[a], names[b], int(raw.get(pair_id, 0)), int(inliers.get(pair_id, 0))))
+    pairs.sort(key=lambda p: (-p[3], -p[2], p[0], p[1]))
+    return {"min_inliers": min_inliers, "pairs": pairs, "images": _per_image(keypoints, pairs, min_inliers)}
+
+
+def _per_image(keypoints: dict[str, int], pairs: list, min_inliers: int) -> dict:
+    images = {name: {"keypoints": n, "verified_pairs": 0, "best_inliers": 0} for name, n in keypoints.items()}
+    for a, b, _, inl in pairs:
+        for name in (a, b):
+            images[name]["best_inliers"] = max(images[name]["best_inliers"], inl)
+            images[name]["verified_pairs"] += inl >= min_inliers
+    return images
+
+
+def summarize_matches(stats: dict) -> dict:
+    """Counts and medians of the match statistics (what stats.json records)."""
+    raw = [p[2] for p in stats["pairs"]]
+    inl = [p[3] for p in stats["pairs"]]
+    keypoints = [v["keypoints"] for v in stats["images"].values()]
+    med = (lambda v: float(np.median(v)) if v else 0.0)
+    return {
+        "images": len(stats["images"]),
+        "median_keypoints": med(keypoints),
+        "pairs_with_matches": sum(r > 0 for r in raw),
+        "verified_pairs": sum(i >= stats["min_inliers"] for i in inl),
+        "median_matches": med(raw),
+        "median_inliers": med(inl),
+        "max_inliers": max(inl, default=0),
+    }
+
+
+def _pair_lines(pairs: list, limit: int = 5) -> str:
+    return "\n".join(f"    {a} - {b}: {raw} matches, {inl} verified inliers" for a, b, raw, inl in pairs[:limit])
+
+
+def _counts_line(stats: dict) -> str:
+    s = summarize_matches(stats)
+    return (f"  {s['images']} images, median {s['median_keypoints']:.0f} keypoints; {s['pairs_with_matches']} pairs with "
+            f"matches (median {s['median_matches']:.0f}); {s['verified_pairs']} pairs with >= {stats['min_inliers']} "
+            f"verified inliers (median {s['median_inliers']:.0f}, max {s['max_inliers']})")
+
+
+def check_enough_matches(stats: dict, database: Path) -> None:
+    """ReconstructionError when no pair has enough verified inliers for the mapper to start."""
+    if summarize_matches(stats)["verified_pairs"] > 0:
+        return
+    raise ReconstructionError(
+        f"too few matches: no image pair has the {stats['min_inliers']} geometrically verified matches the mapper needs\n"
+        + _counts_line(stats) + "\n  best pairs:\n" + (_pair_lines(stats["pairs"]) or "    (none)") + "\n"
+        f"  database kept: {database}\n"
+        "  try more keypoints (--max-keypoints), a looser --ratio, other pairs, or images with more overlap"
+    )
+
+
+def explain_no_model(stats: dict, options, database: Path) -> ReconstructionError:
+    """The mapper made no model: for the incremental mappers, the initial-pair requirements; the best pairs."""
+    from ..stages.mapping import initial_pair_options, mapper_type_of
+
+    kind, init = mapper_type_of(options), initial_pair_options(options)
+    if init is not None:
+        first = "no initial pair: the mapper found no image pair to start from"
+        why = (f"  an initial pair needs >= {init.init_min_num_inliers} inliers, a triangulation angle >= "
+               f"{init.init_min_tri_angle} deg and forward motion <= {init.init_max_forward_motion}\n")
+        prefix = "incremental_options." if kind == "hierarchical" else ""
+        fix = (f"  try --mapper {prefix}mapper.init_min_num_inliers=50 --mapper {prefix}mapper.init_min_tri_angle=8, "
+               "or images with a wider baseline")
+        if kind == "hierarchical":  # its clusters also drop models smaller than min_model_size
+            size = options.incremental_options.min_model_size
+            why += f"  and the hierarchical mapper keeps only models of >= {size} images\n"
+            fix += "; for small collections use --mapper-type incremental"
+    else:
+        first = "no model: the global mapper could not place enough cameras"
+        why = (f"  a model needs >= {options.min_model_size} images linked by pairs with >= {options.min_num_matches} "
+               "verified inliers and consistent relative rotations\n")
+        fix = "  try --mapper-type incremental, more keypoints, or images with more overlap"
+    return ReconstructionError(
+        first + "\n" + why + _counts_line(stats) + "\n  best pairs:\n" + (_pair_lines(stats["pairs"]) or "    (none)")
+        + f"\n  database kept: {database}\n" + fix
+    )
+
+
+def explain_models(groups: list[list[str]], stats: dict, paths: list[Path]) -> str:
+    """Several models: where each was written, its images, and the strongest verified links between them."""
+    where = {name: k for k, names in enumerate(groups) for name in names}
+    links = [p for p in stats["pairs"] if p[0] in where and p[1] in where and where[p[0]] != where[p[1]]]
+    lines = [f"    {path}: {len(names)} images: {', '.join(names[:8])}{' ...' if len(names) > 8 else ''}"
+             for path, names in zip(paths, groups)]
+    return (
+        f"{len(groups)} models: the images split into groups the mapper could not join; each is written, "
+        "the largest to model/\n" + "\n".join(lines) + "\n"
+        f"  strongest links between different models (needs >= {stats['min_inliers']} inliers and enough 3D points):\n"
+        + (_pair_lines(links) or "    (no verified pair links them)") + "\n"
+        "  to join them: pairs linking the groups (--pairs exhaustive), more keypoints, or photos between the groups"
+    )
+
+
+def unregistered_report(names: list[str], stats: dict) -> list[dict]:
+    """For images in no model: keypoints, verified pairs, best inlier count and raw matches of their best pairs."""
+    report = []
+    for name in names:
+        best = [(b if a == name else a, raw, inl) for a, b, raw, inl in stats["pairs"] if name in (a, b)][:3]
+        report.append({"name": name, **stats["images"].get(name, {}),
+                       "best_pairs": [{"with": other, "matches": raw, "inliers": inl} for other, raw, inl in best]})
+    return report
+
+
+def format_summary(stats: dict) -> str:
+    """The one-screen summary of a stats.json dictionary."""
+    lines = [f"reconstruction: {stats['status']}" + (f" ({stats['failure']})" if stats.get("failure") else "")]
+    model = stats.get("model")
+    if model:
+        lines.append(f"  registered images  {model['registered_images']} / {stats['matches']['images']}")
+        lines.append(f"  3D points          {model['points3D']}")
+        lines.append(f"  mean track length  {model['mean_track_length']:.2f}")
+        lines.append(f"  mean reproj. error {model['mean_reprojection_error_px']:.3f} px")
+        lines.append(f"  models             {len(stats['models'])}" + (" (the others in models/)" if len(stats["models"]) > 1 else ""))
+    m = stats.get("matches") or {}
+    if m:
+        lines.append(f"  matches            {m['pairs_with_matches']} pairs, median {m['median_matches']:.0f} matches, "
+                     f"{m['verified_pairs']} verified (median {m['median_inliers']:.0f} inliers)")
+    refine = stats.get("refine")
+    if refine:
+        lines.append(f"  refined keypoints  {refine['aligned']} of {refine['matches']} matches aligned, "
+                     f"median shift {refine['median_shift_px']:.2f} px")
+    filtered = stats.get("final_filter")
+    if filtered and "threshold_px" in filtered:
+        lines.append(f"  final filter       {filtered['removed_observations']} of {filtered['observations']} observations "
+                     f"beyond {filtered['threshold_px']:.2f} px dropped, mean error "
+                     f"{filtered['mean_error_before_px']:.3f} -> {filtered['mean_error_after_px']:.3f} px")
+    unregistered = stats.get("unregistered", [])
+    for item in unregistered[:5]:
+        lines.append(f"  not registered     {item['name']}: {item.get('keypoints', 0)} keypoints, "
+                     f"{item.get('verified_pairs', 0)} verified pairs, best {item.get('best_inliers', 0)} inliers")
+    if len(unregistered) > 5:
+        lines.append(f"  not registered     ... and {len(unregistered) - 5} more (listed in stats.json)")
+    timings = stats.get("timings_s", {})
+    lines.append("  time               " + ", ".join(f"{k} {v:.1f}s" for k, v in timings.items()))
+    if stats.get("output"):
+        lines.append(f"  output             {stats['output']}")
+    return "\n".join(lines)

@@ -1,0 +1,129 @@
+"""The run object every pipeline receives, and how a pipeline runs its list of steps.
+
+A **Run** is one run of a pipeline over one output folder: the options of how it runs
+(``RunOptions``: reuse, threads, progress, executor), the folder's lock, ONE executor opened
+for the whole run (local, or a Ray cluster connected at the first stage with work and
+disconnected when the run ends), the wall time of each step, and the contexts steps hold open
+for the steps after them (COLMAP's log). A **pipeline** is a tuple of ``Step``s; each step is
+a function ``step(run, state) -> state`` over the pipeline's state (a dataclass of what the
+steps made so far: paths, options, counts)::
+
+    RECONSTRUCT = (Step("extract", extract), Step("pairs", pairs), Step("match", match), ...)
+
+    with Run(out, RunOptions(executor="ray"), lock="reconstruction folder") as run:
+        state = run_steps(run, RECONSTRUCT, state)
+
+A new stage is one module (in ``sekd_sfm/stages``) and one ``Step`` in a pipeline's tuple.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import AbstractContextManager, ExitStack, contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+from ..execution import Executor, RayOptions, open_executor
+from ..files.locking import exclusive_lock
+
+State = TypeVar("State")
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How a run runs, as opposed to what it computes (the pipeline's configuration, which its record keeps)."""
+
+    #: Recompute features and matches instead of reusing the files an earlier run left in the output folder.
+    overwrite: bool = False
+    #: CPU threads of extraction, matching and geometric verification (None: every core the process may use).
+    num_threads: int | None = None
+    progress: bool = True
+    #: Where stages spread over items run: ``local`` (this machine) or ``ray`` (the cluster of ``ray_options``).
+    executor: str = "local"
+    ray_options: RayOptions | None = None
+
+
+class Run:
+    """One run of a pipeline over ``out``: a context manager that opens the executor (and takes the folder's lock
+    when ``lock`` names what the folder is), and closes both, and whatever steps held, when the block ends."""
+
+    def __init__(self, out: str | Path, options: RunOptions | None = None, *, lock: str | None = None):
+        self.out = Path(out)
+        self.options = options or RunOptions()
+        self.seconds: dict[str, float] = {}  # wall time of each timed step, in order
+        self._lock = lock
+        self._stack = ExitStack()
+        self._executor: Executor | None = None
+
+    def __enter__(self) -> Run:
+        try:
+            # The executor first: a wrong executor setting (no cluster answers) fails before the folder is made.
+            self._executor = self._stack.enter_context(open_executor(self.options.executor, self.options.ray_options))
+            if self._lock is not None:
+                self.out.mkdir(parents=True, exist_ok=True)
+                self._stack.enter_context(exclusive_lock(self.out, what=self._lock))
+        except BaseException:
+            self._stack.close()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._executor = None
+        self._stack.close()
+
+    @property
+    def executor(self) -> Executor:
+        """The run's executor, open from the start of the run to its end."""
+        if self._executor is None:
+            raise RuntimeError("Run.executor outside its `with Run(...)` block")
+        return self._executor
+
+    @property
+    def progress(self) -> bool:
+        return self.options.progress
+
+    @property
+    def num_threads(self) -> int | None:
+        return self.options.num_threads
+
+    def hold(self, context: AbstractContextManager) -> Any:
+        """Enter ``context`` until the run ends (a step opens what later steps still use); returns its value."""
+        return self._stack.enter_context(context)
+
+    @contextmanager
+    def timed(self, name: str) -> Iterator[None]:
+        """Record the block's wall time as step ``name`` (s, 3 decimals), also when it fails."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = round(time.perf_counter() - start, 3)
+
+    def timings(self) -> dict[str, float]:
+        """Each timed step's seconds and their ``total``, as records keep them."""
+        return {**self.seconds, "total": round(sum(self.seconds.values()), 3)}
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of a pipeline: ``run(run, state) -> state``, timed under ``name`` unless ``timed`` is False (checks
+    and bookkeeping that records do not list as stages); skipped, and not timed, where ``when(state)`` is False."""
+
+    name: str
+    run: Callable[[Run, Any], Any]
+    timed: bool = True
+    when: Callable[[Any], bool] | None = None
+
+
+def run_steps(run: Run, steps: Sequence[Step], state: State) -> State:
+    """Run ``steps`` in order over ``state``; returns the last step's state."""
+    for step in steps:
+        if step.when is not None and not step.when(state):
+            continue
+        if step.timed:
+            with run.timed(step.name):
+                state = step.run(run, state)
+        else:
+            state = step.run(run, state)
+    return state

@@ -1,1 +1,0 @@
-"""COLMAP side: database import, verification, mapping, relative pose, export."""
