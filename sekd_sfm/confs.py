@@ -10,19 +10,19 @@ Options given explicitly still win over the preset::
 From Python::
 
     from sekd_sfm.confs import build_configs
-    features_config, match_config = build_configs(conf="sift-n8000")
+    features_config, match_config, given = build_configs(conf="sift-n8000")
 """
 from __future__ import annotations
 
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from .errors import SekdError
 from .features import FeatureConfig
-from .stages.match import DEFAULT_RATIO, MatchConfig
 from .model.inference import SEKDConfig
+from .stages.match import DEFAULT_RATIO, MatchConfig
 
 
 @dataclass(frozen=True)
@@ -77,25 +77,94 @@ def resolve_options(options: Mapping[str, Any], explicit: Collection[str] = (), 
     return settings
 
 
+class Configs(NamedTuple):
+    """What ``build_configs`` makes: the feature and match configurations, and ``given``, the fields of the two
+    the user set (dotted as a run's record has them: ``features.max_keypoints``, ``matching.ratio``)."""
+
+    features: FeatureConfig
+    matching: MatchConfig
+    given: frozenset[str] = frozenset()
+
+
+#: Option name -> MatchConfig field; every other option sets the FeatureConfig and SEKDConfig fields of its name.
+MATCH_FIELDS = {"match_mode": "mode", "ratio": "ratio", "rootsift": "rootsift", "device": "device"}
+_FEATURE_FIELDS = frozenset(f.name for f in fields(FeatureConfig)) - {"sekd"}
+_SEKD_FIELDS = frozenset(f.name for f in fields(SEKDConfig))
+
+
+def _fields_of(option: str) -> tuple[str, ...]:
+    """The configuration fields the option ``option`` sets (``device``: the network's and the matcher's)."""
+    return (((f"features.{option}",) if option in _FEATURE_FIELDS else ())
+            + ((f"features.sekd.{option}",) if option in _SEKD_FIELDS else ())
+            + ((f"matching.{MATCH_FIELDS[option]}",) if option in MATCH_FIELDS else ()))
+
+
+def _config_default(option: str) -> Any:
+    """The value the configurations have for ``option`` when it is not given."""
+    if option in MATCH_FIELDS:
+        return getattr(MatchConfig(), MATCH_FIELDS[option])
+    if option in _SEKD_FIELDS:
+        return getattr(SEKDConfig(), option)
+    return getattr(FeatureConfig(), option, None)
+
+
+def _field_value(option: str, value: Any) -> Any:
+    """The configuration's value of an option's value: the CLI's ``max_pixels`` 0 means no cap."""
+    return (value or None) if option == "max_pixels" else value
+
+
 def build_configs(options: Mapping[str, Any] | None = None, explicit: Collection[str] = (),
-                  conf: str | None = None) -> tuple[FeatureConfig, MatchConfig]:
-    """The feature and match configurations of a command's options, a preset applied first.
+                  conf: str | None = None, defaults: Mapping[str, Any] | None = None) -> Configs:
+    """The feature and match configurations of a command's options, a preset applied first, and the fields the
+    user set (``Configs``).
 
     ``options`` uses the CLI option names (``feature``, ``max_keypoints``, ``resize_max``,
     ``threshold``, ``nms_radius``, ``multi_scale``, ``subpixel``, ``precision``, ``device``,
     ``weights``, ``max_pixels`` (0 = no cap), ``match_mode``, ``ratio``, ``rootsift``); missing
-    ones keep the dataclass defaults; other keys are ignored. Every command builds its
-    configurations here, so an option means the same everywhere.
+    ones keep the dataclass defaults; other keys are ignored. ``defaults``: what an option not in
+    ``explicit`` stands for where a command's default differs from the dataclasses' (reconstruct:
+    ``resize_max`` 1600). Every command builds its configurations here, so an option means the
+    same everywhere.
+
+    A field counts as set (``given``) when the user's choice decides it: an option in ``explicit``
+    whose value differs from the one it would have without it (the preset's, else the default),
+    or the preset, where it differs from the options' values.
     """
-    settings = resolve_options(options or {}, explicit, conf)
+    defaults = dict(defaults or {})
+    options = {**(options or {}), **{k: v for k, v in defaults.items() if k not in explicit}}
+    settings = resolve_options(options, explicit, conf)
     sekd = SEKDConfig(**{f.name: settings[f.name] for f in fields(SEKDConfig) if f.name in settings})
     feature = FeatureConfig(sekd=sekd, **{f.name: settings[f.name] for f in fields(FeatureConfig)
                                           if f.name in settings and f.name != "sekd"})
-    if "max_pixels" in settings:  # the CLI's 0 means no cap
-        feature.max_pixels = settings["max_pixels"] or None
-    names = {"match_mode": "mode", "ratio": "ratio", "rootsift": "rootsift", "device": "device"}
-    matching = MatchConfig(**{field: settings[option] for option, field in names.items() if option in settings})
-    return feature, matching
+    if "max_pixels" in settings:
+        feature.max_pixels = _field_value("max_pixels", settings["max_pixels"])
+    matching = MatchConfig(**{field: settings[option] for option, field in MATCH_FIELDS.items() if option in settings})
+    return Configs(feature, matching, _given(options, explicit, conf, defaults, settings))
+
+
+def _given(options: Mapping[str, Any], explicit: Collection[str], conf: str | None, defaults: Mapping[str, Any],
+           settings: Mapping[str, Any]) -> frozenset[str]:
+    """The fields of ``build_configs``'s configurations that the user's choices decide (its docstring)."""
+    preset = get_conf(conf).settings if conf else {}
+
+    def default(option: str) -> Any:
+        return defaults.get(option, _config_default(option))
+
+    def without_choice(option: str) -> Any:  # the setting had the user not chosen it
+        return preset.get(option, default(option)) if option in explicit else options.get(option, default(option))
+
+    chosen = {option for option, value in settings.items() if option != "ratio"
+              and _field_value(option, value) != _field_value(option, without_choice(option))}
+    if "ratio" in settings:
+        undone = [without_choice("ratio")]
+        if conf:  # the ratio follows the preset, --feature, --match-mode and --ratio together (resolve_options):
+            # set when undoing any one of them changes it
+            undone = [options.get("ratio")] + [
+                resolve_options({**options, option: default(option)}, set(explicit) - {option}, conf).get("ratio")
+                for option in ("feature", "match_mode", "ratio") if option in explicit]
+        if any(settings["ratio"] != ratio for ratio in undone):
+            chosen.add("ratio")
+    return frozenset(field for option in chosen for field in _fields_of(option))
 
 
 def output_names(conf: str, pairs: str | Path | None = None) -> tuple[str, str]:

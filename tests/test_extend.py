@@ -22,7 +22,7 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from sekd_sfm.errors import SekdError
 from sekd_sfm.features import FeatureConfig
-from sekd_sfm.pipelines import extend as extend_module
+from sekd_sfm.pipelines import extend_commit
 from sekd_sfm.pipelines.extend import ExtendOptions, pose_matrix
 from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
 
@@ -152,10 +152,10 @@ def test_kill_during_extend_then_rerun_gives_the_uninterrupted_model(scene, exte
             raise KeyboardInterrupt
         real_replace(source, target)
 
-    monkeypatch.setattr(extend_module.os, "replace", crash)
+    monkeypatch.setattr(extend_commit.os, "replace", crash)
     with pytest.raises(KeyboardInterrupt):
         reconstruct(photos, out, extend=ExtendOptions(), progress=False)
-    monkeypatch.setattr(extend_module.os, "replace", real_replace)
+    monkeypatch.setattr(extend_commit.os, "replace", real_replace)
     assert len(_poses(_model(out))) == ALL and (out / "extend" / "commit.json").is_file()
 
     reconstruct(photos, out, extend=ExtendOptions(), progress=False)  # finishes the commit; nothing left to add

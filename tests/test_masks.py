@@ -261,7 +261,8 @@ def test_cli(photos, tmp_path):
 
 
 def test_stats_record_the_masks_folder():
-    from sekd_sfm.pipelines.reconstruct import ReconstructConfig, _config_dict
+    from sekd_sfm.pipelines.config import ReconstructConfig
+    from sekd_sfm.pipelines.config import config_dict as _config_dict
 
     assert _config_dict(ReconstructConfig())["masks"] is None
     assert _config_dict(ReconstructConfig(masks="/data/masks"))["masks"] == "/data/masks"

@@ -2,7 +2,9 @@
 
 The cluster runs inside a network namespace made by the test (only ``lo`` up), so Ray binds
 127.0.0.1 and nothing leaves the machine; one cluster serves every test of the module and is
-stopped by the namespace's PIDs, also on failure. Needs root (``ip netns``) and ``ray``.
+stopped by the namespace's PIDs, also on failure. Needs root (``ip netns``) and ``ray``; the ``ray``
+and ``sekd`` commands are the ones installed beside this Python (``venv/bin/python -m pytest`` works
+without activating the venv), and the tests that need one skip when it is not there.
 """
 from __future__ import annotations
 
@@ -30,7 +32,16 @@ from sekd_sfm.features import FeatureConfig
 from sekd_sfm.stages.match import match_features
 
 COCO = SHARED / "data/train/coco"
-SEKD_BIN = str(Path(sys.executable).with_name("sekd")) if Path(sys.executable).with_name("sekd").exists() else "sekd"
+
+
+def _installed(command: str) -> str:
+    """The console script ``command`` installed beside this Python (a venv's ``bin``), not one found on ``$PATH``;
+    the test skips when it is absent."""
+    path = Path(sys.executable).parent / command
+    if not path.is_file():
+        pytest.skip(f"{command!r} is not installed beside {sys.executable} (looked for {path}): "
+                    f'pip install -e ".[dev]" with this Python installs it')
+    return str(path)
 
 
 def _sh(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
@@ -63,6 +74,7 @@ def cluster():
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
     if shutil.which("ip") is None:
         pytest.skip("ip (iproute2) not found: the Ray cluster needs a network namespace")
+    ray = _installed("ray")
     ns, port = f"sekdray{os.getpid()}", 20000 + os.getpid() % 20000
     made = _sh("ip", "netns", "add", ns)
     if made.returncode != 0:
@@ -71,10 +83,10 @@ def cluster():
     try:
         _sh("ip", "netns", "exec", ns, "ip", "link", "set", "lo", "up")
         common = ("--num-cpus", "1", "--object-store-memory", str(200 << 20), "--disable-usage-stats")
-        head = _sh("ip", "netns", "exec", ns, "ray", "start", "--head", "--port", str(port),
+        head = _sh("ip", "netns", "exec", ns, ray, "start", "--head", "--port", str(port),
                    "--include-dashboard=false", "--temp-dir", str(temp_dir), *common)
         assert head.returncode == 0, head.stderr[-2000:]
-        node = _sh("ip", "netns", "exec", ns, "ray", "start", "--address", f"127.0.0.1:{port}", *common)
+        node = _sh("ip", "netns", "exec", ns, ray, "start", "--address", f"127.0.0.1:{port}", *common)
         assert node.returncode == 0, node.stderr[-2000:]
         yield ns, f"127.0.0.1:{port}"
     finally:
@@ -83,7 +95,7 @@ def cluster():
 
 def _ray_cli(cluster, *args: str) -> list[str]:
     ns, address = cluster
-    return ["ip", "netns", "exec", ns, SEKD_BIN, *args, "--executor", "ray", "--ray-address", address]
+    return ["ip", "netns", "exec", ns, _installed("sekd"), *args, "--executor", "ray", "--ray-address", address]
 
 
 def _contents(path: Path) -> dict:
@@ -275,7 +287,7 @@ def test_node_leaving_mid_run_its_tasks_go_to_the_others(cluster, photos_320, tm
     ns, address = cluster
     name = f"leaving{os.getpid()}"
     before = set(_namespace_pids(ns))
-    joined = _sh("ip", "netns", "exec", ns, "ray", "start", "--address", address, "--num-cpus", "1",
+    joined = _sh("ip", "netns", "exec", ns, _installed("ray"), "start", "--address", address, "--num-cpus", "1",
                  "--object-store-memory", str(200 << 20), "--disable-usage-stats", "--node-name", name)
     node = set(_namespace_pids(ns)) - before  # the third node's processes (no job runs yet)
     try:
@@ -344,7 +356,7 @@ def test_driver_killed_mid_run_resumes_without_redoing(cluster, photos_320, tmp_
 def _sekd_in(ns: str, *args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     """``sekd ARGS`` inside the namespace ``ns``, with ``env`` replacing ``$RAY_ADDRESS`` (None: unset)."""
     environ = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"} | (env or {})
-    return subprocess.run(["ip", "netns", "exec", ns, SEKD_BIN, *args], env=environ, check=False,
+    return subprocess.run(["ip", "netns", "exec", ns, _installed("sekd"), *args], env=environ, check=False,
                           capture_output=True, text=True, timeout=300)
 
 
@@ -390,6 +402,7 @@ def test_auto_address_without_a_cluster_starts_a_local_one(tmp_path, ray_tmpdir,
     pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
     if shutil.which("ip") is None:
         pytest.skip("ip (iproute2) not found")
+    _installed("sekd")
     ns = f"sekdlocal{os.getpid()}"
     if _sh("ip", "netns", "add", ns).returncode != 0:
         pytest.skip("cannot create a network namespace (needs root)")

@@ -197,3 +197,43 @@ def test_bench_localization_on_two_real_photos(shared, tmp_path):
     # measured: SEKD 0.25 -> 0.06 px, SIFT 0.11 -> 0.05 px on three photos
     assert report["results"]["sekd"]["detected"]["median_px"] > report["results"]["sift"]["detected"]["median_px"]
     assert "| sekd |" in (tmp_path / "results.md").read_text()
+
+
+def test_a_failed_refinement_resumes_from_the_pairs_it_finished(warped_pair, tmp_path, monkeypatch):
+    """The per-pair alignments run as an execution Stage: finished pairs survive a failure, the rerun computes only
+    the rest, and the keypoints equal those of an uninterrupted run."""
+    import shutil
+
+    from sekd_sfm.stages import refine as refine_module
+
+    root, images, _, _, _ = warped_pair
+    three = tmp_path / "images"
+    shutil.copytree(images, three)
+    shutil.copy(three / "b.png", three / "c.png")
+    features = extract_features(three, tmp_path / "features.h5", FeatureConfig(), progress=False, num_threads=1)
+    pairs = [("a.png", "b.png"), ("a.png", "c.png"), ("b.png", "c.png")]
+    (tmp_path / "pairs.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    matches = match_features(features, tmp_path / "pairs.txt", tmp_path / "matches.h5", MatchConfig(mode="mnn"),
+                             progress=False, num_threads=1)
+    clean = refine_keypoints(features, matches, pairs, three, tmp_path / "clean.h5", progress=False)
+    computed: list[int] = []
+    original = refine_module._pair_edges
+
+    def fails_on_the_third(*args):
+        computed.append(1)
+        if len(computed) == 3:
+            raise SekdError("keypoint refinement: the third pair fails")
+        return original(*args)
+
+    monkeypatch.setattr(refine_module, "_pair_edges", fails_on_the_third)
+    with pytest.raises(SekdError, match="the third pair fails"):
+        refine_keypoints(features, matches, pairs, three, tmp_path / "resumed.h5", progress=False)
+    assert not (tmp_path / "resumed.h5").exists() and (tmp_path / "resumed-pairs.h5").exists()
+    computed.clear()
+    monkeypatch.setattr(refine_module, "_pair_edges", lambda *args: computed.append(1) or original(*args))
+    resumed = refine_keypoints(features, matches, pairs, three, tmp_path / "resumed.h5", progress=False)
+    assert len(computed) == 1 and not (tmp_path / "resumed-pairs.h5").exists()
+    with h5py.File(clean, "r") as f, h5py.File(resumed, "r") as g:
+        for name in ("a.png", "b.png", "c.png"):
+            assert np.array_equal(f[name]["keypoints"][()], g[name]["keypoints"][()])
+    assert refine_summary(clean)["aligned"] == refine_summary(resumed)["aligned"] > 0

@@ -10,7 +10,6 @@
 """
 from __future__ import annotations
 
-import json
 import logging
 import shutil
 import time
@@ -21,15 +20,16 @@ import numpy as np
 
 from ..errors import SekdError
 from ..evaluation.metrics import mean_average_accuracy, pose_auc
-from ..stages.extract import extract_features
 from ..features import FeatureConfig
+from ..files.atomic import write_json
 from ..files.features import read_attrs, read_features
-from ..stages.match import MatchConfig, describe_config, match_descriptors
+from ..pipelines.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
+from ..pipelines.record import read_record
 from ..runtime import package_versions, run_record, shared_dir
 from ..stages.colmap import colmap_log, log_prefix, require_pycolmap
+from ..stages.extract import extract_features
 from ..stages.mapping import mapper_options, run_mapper
-from ..pipelines.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
-from ..files.atomic import write_json
+from ..stages.match import MatchConfig, describe_config, match_descriptors
 from .strecha import StrechaCamera, pairwise_errors, read_cameras, relative_pose
 
 logger = logging.getLogger("sekd")
@@ -102,15 +102,11 @@ def run_ours(scene: Path, work: Path, config: ReconstructConfig, num_threads: in
     wall = time.perf_counter() - start
     model = work / "model"
     reconstruction = require_pycolmap().Reconstruction(str(model)) if model.is_dir() else None
-    stats = _read_json(work / "stats.json")
+    stats = read_record(work) or {}
     return {"method": label or f"sekd pipeline ({config.features.feature}, {config.mapper_type} mapper)",
             "wall_time_s": round(wall, 1),
             "stage_times_s": stats.get("timings_s", {}), "failure": failure,
             **evaluate(reconstruction, read_cameras(scene / "gt_dense_cameras"))}
-
-
-def _read_json(path: Path) -> dict:
-    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 def run_pycolmap_sift(scene: Path, work: Path, resize_max: int, camera_mode: str, seed: int,

@@ -10,7 +10,6 @@ from sekd_sfm.model.weights import DEFAULT_MODEL, EMBEDDED_MODELS
 from sekd_sfm.train.adapt import SCHEDULES, AdaptConfig, adapt_or_reuse
 from sekd_sfm.train.adapt import adapt as run_adapt
 
-ADAPT_KEY = "sekd.adapt"
 #: The adapted model of ``reconstruct --adapt``, inside its output folder (run folder beside it).
 ADAPTED_NAME = "adapted.pth"
 
@@ -57,21 +56,14 @@ def adapt(photos, output, start, rounds, schedule, seed, num_threads, resume, no
     click.echo(str(run_adapt(photos, output, config, resume=resume)))
 
 
-def _keep_adapt(ctx: click.Context, _param, value: bool) -> bool:
-    ctx.meta[ADAPT_KEY] = value  # kept in the context: `reconstruct` takes it without a new argument
-    return value
-
-
 adapt_option = click.option(
-    "--adapt", is_flag=True, expose_value=False, callback=_keep_adapt,
+    "--adapt", is_flag=True,
     help=f"First fine-tune the SEKD model (--model/--weights) on these photos (`sekd adapt`, 1 round), "
          f"then extract with it; kept as OUTPUT/{ADAPTED_NAME} and reused by later runs.")
 
 
 def adapt_in_line(images: Path, output: Path, features, num_threads: int | None, progress: bool) -> None:
     """``reconstruct --adapt``: adapt the chosen model to ``images`` and make ``features`` use the result."""
-    if not click.get_current_context().meta.get(ADAPT_KEY):
-        return
     if features.feature != "sekd":
         raise SekdError(f"--adapt fine-tunes a SEKD model; --feature {features.feature} has none to adapt")
     config = AdaptConfig(start=str(features.weights) if features.weights else DEFAULT_MODEL,

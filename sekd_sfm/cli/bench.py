@@ -176,7 +176,10 @@ def localization(methods, output, num_images, max_keypoints, seed, num_threads) 
     Example:
       sekd bench localization -m sift -m sekd -m sekd:authors -o out/loc
     """
-    from sekd_sfm.bench.localization import LocalizationConfig, run_localization_benchmark
+    from sekd_sfm.bench.localization import (
+        LocalizationConfig,
+        run_localization_benchmark,
+    )
     from sekd_sfm.bench.methods import parse_method
 
     config = LocalizationConfig(num_images=num_images, max_keypoints=max_keypoints, seed=seed, num_threads=num_threads)

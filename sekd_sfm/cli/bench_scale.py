@@ -93,8 +93,8 @@ def scale(sizes, output, image_size, spacing, layout, hfov_deg, seed, textures, 
             seconds = json.loads(path.read_text())["generation_s"]
             click.echo(f"n={size}: {path.parent} ({seconds:.1f} s, {size / max(seconds, 1e-9):.1f} images/s)")
         return
-    from sekd_sfm.stages.mapping import mapper_options
     from sekd_sfm.pipelines.reconstruct import ReconstructConfig
+    from sekd_sfm.stages.mapping import mapper_options
 
     if mapper_type != "auto":  # a wrong option fails now, not after the first scene (auto: per size, before its run)
         mapper_options(list(mapper), seed, mapper_type)

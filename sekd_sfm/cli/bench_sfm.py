@@ -8,8 +8,14 @@ import click
 from sekd_sfm.confs import build_configs
 from sekd_sfm.features import FEATURE_TYPES
 
-from .options import OptionValues, extraction_options, num_threads_option, weights_option
-from .reconstruct import camera_options, mapping_options, matching_options, reconstruct_config
+from .match import matching_options
+from .options import (
+    OptionValues,
+    extraction_options,
+    num_threads_option,
+    weights_option,
+)
+from .reconstruct import camera_options, mapping_options, reconstruct_config
 
 
 @click.command()
@@ -47,7 +53,7 @@ def sfm(scene: str, output: Path | None, extraction: OptionValues, num_threads: 
     from sekd_sfm.stages.pairs import PairsConfig
 
     # Every pair, as the pycolmap baseline (exhaustive matching): the pipelines differ in features, not pairs.
-    config = reconstruct_config(extraction, matching, camera, mapping, pairs=PairsConfig(mode="exhaustive"))
+    config, _ = reconstruct_config(extraction, matching, camera, mapping, pairs=PairsConfig(mode="exhaustive"))
     to_run = available([parse_method(m) for m in with_weights(methods, config.features.weights)])
     report = benchmark_sfm(scene, output or Path(f"bench-sfm-{Path(scene).name}"), config, baseline=not no_baseline,
                            num_threads=num_threads, methods=to_run)
@@ -82,7 +88,7 @@ def ratios(scene: str, output: Path, feature_list: str, max_keypoints: int, resi
     """
     from sekd_sfm.bench.sfm import benchmark_ratios, ratios_markdown
 
-    base, _ = build_configs({"max_keypoints": max_keypoints, "resize_max": resize_max, "weights": weights})
+    base = build_configs({"max_keypoints": max_keypoints, "resize_max": resize_max, "weights": weights}).features
     features = [f.strip() for f in feature_list.split(",") if f.strip()]
     unknown = sorted(set(features) - set(FEATURE_TYPES))
     if unknown:

@@ -11,7 +11,12 @@ from sekd_sfm.failures import DEBUG_VARIABLE, debug_enabled
 from sekd_sfm.files.images import DEFAULT_MAX_PIXELS
 from sekd_sfm.model.fused import ENV_SWITCH, fused_forward_available
 from sekd_sfm.model.weights import EMBEDDED_MODEL, file_sha256
-from sekd_sfm.runtime import cpu_description, cpu_has_fast_bf16, cpu_reports_bf16, package_versions
+from sekd_sfm.runtime import (
+    cpu_description,
+    cpu_has_fast_bf16,
+    cpu_reports_bf16,
+    package_versions,
+)
 
 
 @click.command()
@@ -68,7 +73,10 @@ def _extras() -> dict[str, str]:
 
 def _ray_cluster_here() -> str:
     """The Ray cluster ``--ray-address auto`` would join from here, or what it does instead."""
-    from sekd_sfm.execution.ray_connect import _running_cluster_address, address_variable
+    from sekd_sfm.execution.ray_connect import (
+        _running_cluster_address,
+        address_variable,
+    )
 
     if address_variable():
         return f"$RAY_ADDRESS={address_variable()} (what --ray-address auto uses)"
@@ -97,7 +105,12 @@ def _auto_precision_reason() -> str:
 
 def _tile_budget() -> str:
     """SEKD's pixels per forward pass (``model.tiling``): larger images run in tiles, so memory stays bounded."""
-    from sekd_sfm.model.tiling import BYTES_PER_PIXEL, MEMORY_SHARE, memory_limit, pixel_budget
+    from sekd_sfm.model.tiling import (
+        BYTES_PER_PIXEL,
+        MEMORY_SHARE,
+        memory_limit,
+        pixel_budget,
+    )
 
     limit = memory_limit()
     budget = pixel_budget()

@@ -24,7 +24,7 @@ TRAINING_FORMATS = ("nerfstudio", "3dgs")
                    "Gaussian Splatting and NeRF trainers.")
 @click.option("--images", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="nerfstudio/3dgs: the photos' folder (photo NAME is IMAGES/NAME). "
-                   "Default: the one recorded in the reconstruction's stats.json.")
+                   "Default: the one recorded by the `sekd reconstruct` run that wrote MODEL.")
 @click.option("--masks", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="nerfstudio/3dgs: the masks' folder (MASKS/NAME.png, zero = ignore), exported undistorted to "
                    "OUTPUT/masks. Default: the one `sekd reconstruct --masks` recorded, if any.")
@@ -50,7 +50,7 @@ def export(model: Path, output: Path, fmt: str, images: Path | None, masks: Path
       sparse/0/         the undistorted model: pinhole cameras, poses, 3D points
       transforms.json   cameras as nerfstudio's COLMAP converter writes them
       sparse_pc.ply     3D points for the splats' initialisation
-    The photos are found through OUT/stats.json (--images overrides). Then e.g.
+    The photos are found through the record of the run in OUT (--images overrides). Then e.g.
     `ns-train splatfacto --data OUTPUT` or `python train.py -s OUTPUT` (3DGS).
 
     \b
@@ -78,9 +78,34 @@ def _export_for_training(model: Path, output: Path, images: Path | None, masks: 
     """Run the nerfstudio/3dgs export and print what it wrote."""
     from sekd_sfm.stages.export_nerfstudio import export_nerfstudio
 
+    images, masks = _source_folders(model, images, masks)
     result = export_nerfstudio(model, output, images, masks, max_size, overwrite)
     sizes = sorted(set(result.sizes))
     size = f"{sizes[0][0]}x{sizes[0][1]}" if len(sizes) == 1 else f"{len(sizes)} sizes"
     masked = f", masks for {result.masks}" if result.masks else ""
     click.echo(f"{result.folder}: {result.images} undistorted images ({size} px, pinhole){masked}, "
                f"{result.points:,} points; sparse/0, transforms.json, sparse_pc.ply")
+
+
+def _source_folders(model: Path, images: Path | None, masks: Path | None) -> tuple[Path, Path | None]:
+    """The photo folder and the mask folder (None: no masks) of the export: the given ones, else those named by
+    the record of the reconstruction that wrote ``model`` (``images_dir``, ``config.masks``)."""
+    from sekd_sfm.pipelines.record import STATS, Record
+    from sekd_sfm.stages.export import model_folder
+    from sekd_sfm.stages.export_nerfstudio import read_exportable
+
+    folder = model_folder(model)
+    record = Record.of_model(folder)
+    if images is None:
+        if record is None:
+            read_exportable(folder)  # a folder without a (registered) model says that first
+            raise SekdError(f"{folder}: no {STATS} of `sekd reconstruct` beside the model to find the photos in; "
+                            "give the photos' folder with --images")
+        images = record.folder(str(record.images_dir))
+        if not images.is_dir():
+            read_exportable(folder)
+            raise SekdError(f"{images}: the photo folder recorded in {record.path} does not exist; "
+                            "give the photos' folder with --images")
+    if masks is None and record is not None:
+        masks = record.masks_folder()
+    return images, masks

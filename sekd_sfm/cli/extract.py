@@ -9,14 +9,12 @@ from sekd_sfm.confs import output_names
 from sekd_sfm.stages.extract import extract_features
 
 from .options import (
+    OptionValues,
     executor_options,
-    feature_options,
-    masks_option,
-    max_pixels_option,
-    runtime_options,
-    weights_option,
+    extraction_options,
+    num_threads_option,
 )
-from .presets import conf_option, configs_from_context, current_conf
+from .presets import conf_option, feature_and_match_configs
 
 
 @click.command()
@@ -25,18 +23,14 @@ from .presets import conf_option, configs_from_context, current_conf
               help="Feature file to write. Default: IMAGES/../features-FEATURE.h5 beside the image folder "
                    "(feats-CONF.h5 with --conf).")
 @conf_option
-@feature_options
-@max_pixels_option
-@masks_option
-@weights_option
-@runtime_options
+@extraction_options(masks=True)
+@num_threads_option
 @executor_options
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file instead of resuming it.")
 @click.option("--strict", is_flag=True, help="Stop at the first unreadable image instead of skipping it.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
-def extract(images: Path, output: Path | None, feature, max_keypoints, threshold, nms_radius, resize_max,
-            multi_scale, subpixel, max_pixels, masks, weights, num_threads, device, precision, overwrite, strict,
-            no_progress, executor, ray_options) -> None:
+def extract(images: Path, output: Path | None, conf: str | None, extraction: OptionValues, num_threads: int | None,
+            overwrite: bool, strict: bool, no_progress: bool, executor: str, ray_options) -> None:
     """Detect and describe keypoints of every image below IMAGES into one HDF5 file.
 
     \b
@@ -55,10 +49,10 @@ def extract(images: Path, output: Path | None, feature, max_keypoints, threshold
       sekd extract photos/ -o out/features.h5 --masks masks/  # masks/a.jpg.png ignores parts of photos/a.jpg
       sekd extract /shared/photos/ -o /shared/out/features.h5 --executor ray --ray-address head:6379
     """
-    config, _ = configs_from_context()
+    config = feature_and_match_configs(extraction, conf=conf).features
     if output is None:
-        conf = current_conf()
         output = images.parent / (output_names(conf)[0] if conf else f"features-{config.feature}.h5")
     path = extract_features(images, output, config, overwrite=overwrite, strict=strict, num_threads=num_threads,
-                            progress=not no_progress, executor=executor, ray_options=ray_options, masks=masks)
+                            progress=not no_progress, executor=executor, ray_options=ray_options,
+                            masks=extraction["masks"])
     click.echo(str(path))

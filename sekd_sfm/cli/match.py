@@ -8,17 +8,15 @@ import click
 from sekd_sfm.confs import output_names
 from sekd_sfm.stages.match import MATCH_MODES, match_features
 from sekd_sfm.stages.pairs import DEFAULT_NEIGHBORS, PAIR_MODES, PairsConfig, make_pairs
-from sekd_sfm.runtime import DEVICES
 
-from .options import executor_options
-from .presets import conf_option, configs_from_context, current_conf
-
-
-def _keep_num_neighbors(ctx: click.Context, _param, value):
-    # Kept in the context rather than passed as a parameter, so every command using
-    # pairs_options (pairs, reconstruct) gets it without changing its signature.
-    ctx.meta["sekd_num_neighbors"] = value
-    return value
+from .options import (
+    OptionValues,
+    device_option,
+    executor_options,
+    num_threads_option,
+    option_group,
+)
+from .presets import conf_option, feature_and_match_configs
 
 
 def pairs_options(f):
@@ -35,8 +33,7 @@ def pairs_options(f):
                      help="sequential: pair each frame with the next N frames."),
         click.option("--loop-every", type=click.IntRange(min=0), default=0, show_default=True,
                      help="sequential: also pair every K-th frame with all other K-th frames (loop closure); 0 = off."),
-        click.option("--num-neighbors", type=click.IntRange(min=1), default=None, expose_value=False,
-                     callback=_keep_num_neighbors,
+        click.option("--num-neighbors", type=click.IntRange(min=1), default=None,
                      help=f"retrieval/auto: pair each image with its K most similar images [default: {DEFAULT_NEIGHBORS}]; "
                           "with sequential or from-file: add these retrieval pairs (loop closure)."),
     ]
@@ -46,10 +43,7 @@ def pairs_options(f):
 
 
 def pairs_config(pairs_mode, pairs_file, window, loop_every, num_neighbors=None) -> PairsConfig:
-    """PairsConfig from the options of pairs_options (--num-neighbors is read from the click context)."""
-    if num_neighbors is None:
-        ctx = click.get_current_context(silent=True)
-        num_neighbors = ctx.meta.get("sekd_num_neighbors") if ctx else None
+    """PairsConfig from the options of pairs_options (``pairs_config(**pairing.values)`` for the group ``pairing``)."""
     mode = pairs_mode or ("from-file" if pairs_file else "auto")
     if mode == "retrieval" and pairs_file is not None:  # the file's pairs plus retrieval: union
         mode, num_neighbors = "from-file", num_neighbors or DEFAULT_NEIGHBORS
@@ -78,13 +72,18 @@ def match_options(f):
     return f
 
 
+#: The groups of `pairs`, `match` and `reconstruct`: each passed to the command as one OptionValues.
+pairing_options = option_group("pairing", pairs_options)
+matching_options = option_group("matching", match_options)
+
+
 @click.command()
 @click.argument("features", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Pairs file to write. Default: pairs-MODE.txt beside FEATURES.")
-@pairs_options
+@pairing_options
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
-def pairs(features: Path, output: Path | None, pairs_mode, pairs_file, window, loop_every, no_progress) -> None:
+def pairs(features: Path, output: Path | None, pairing: OptionValues, no_progress: bool) -> None:
     """Choose the image pairs to match among the images of a feature file.
 
     \b
@@ -110,7 +109,7 @@ def pairs(features: Path, output: Path | None, pairs_mode, pairs_file, window, l
       sekd pairs out/features.h5 --pairs-file mine.txt             # exactly the pairs in mine.txt
       sekd pairs out/features.h5 --pairs-file mine.txt --num-neighbors 10           # mine.txt plus retrieval
     """
-    config = pairs_config(pairs_mode, pairs_file, window, loop_every)
+    config = pairs_config(**pairing.values)
     output = output or features.with_name(f"pairs-{config.mode}.txt")
     click.echo(str(make_pairs(features, output, config, progress=not no_progress)))
 
@@ -121,16 +120,13 @@ def pairs(features: Path, output: Path | None, pairs_mode, pairs_file, window, l
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Match file to write. Default: matches.h5 beside FEATURES (matches-CONF_PAIRS.h5 with --conf).")
 @conf_option
-@match_options
-@click.option("--device", type=click.Choice(DEVICES), default="auto", show_default=True,
-              help="auto uses a CUDA GPU when one is present.")
-@click.option("--num-threads", type=click.IntRange(min=1), default=None,
-              help="CPU threads (default: all available cores).")
+@option_group("matching", match_options, device_option)
+@num_threads_option
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file instead of resuming it.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @executor_options
-def match(features: Path, pairs_file: Path, output: Path | None, match_mode, ratio, rootsift, device, num_threads,
-          overwrite, no_progress, executor, ray_options) -> None:
+def match(features: Path, pairs_file: Path, output: Path | None, conf: str | None, matching: OptionValues,
+          num_threads: int | None, overwrite: bool, no_progress: bool, executor: str, ray_options) -> None:
     """Match the descriptors of the image pairs in PAIRS (nearest neighbours, batched torch).
 
     \b
@@ -147,10 +143,9 @@ def match(features: Path, pairs_file: Path, output: Path | None, match_mode, rat
       sekd match out/features.h5 out/pairs.txt -o out/matches.h5 --ratio 0.8
       sekd match out/feats-sift-n8000.h5 out/pairs.txt --conf sift-n8000   # -> matches-sift-n8000_pairs.h5
     """
-    _, matching = configs_from_context()
-    conf = current_conf()
+    config = feature_and_match_configs(matching, conf=conf).matching
     output = output or features.with_name(output_names(conf, pairs_file)[1] if conf else "matches.h5")
-    path = match_features(features, pairs_file, output, matching,
+    path = match_features(features, pairs_file, output, config,
                           overwrite=overwrite, num_threads=num_threads, progress=not no_progress,
                           executor=executor, ray_options=ray_options)
     click.echo(str(path))

@@ -21,7 +21,6 @@ from sekd_sfm.features import FEATURE_TYPES
 from sekd_sfm.files.images import DEFAULT_MAX_PIXELS
 from sekd_sfm.runtime import DEVICES, PRECISIONS
 
-MODEL_KEY = "sekd.model"
 #: A function that adds options to a click command function (``click.option(...)`` and the groups below).
 Decorator = Callable[[Callable], Callable]
 #: Where a value the user chose comes from; any other source is a default, which a --conf preset may replace.
@@ -78,44 +77,48 @@ def _stack(declarations: Iterable[Decorator], f: Callable) -> Callable:
     return f
 
 
-def _keep_model(ctx: click.Context, _param, value: str | None) -> str | None:
-    ctx.meta[MODEL_KEY] = value  # eager: read by --weights' callback, which turns it into a path
-    return value
-
-
-def _weights_or_model(ctx: click.Context, _param, value: str | None) -> str | None:
-    """``--weights PATH`` as given, else the file of ``--model NAME``; both at once is an error."""
+def model_weights(model: str | None, weights: str | None, feature: str | None = None) -> str | None:
+    """The SEKD network of ``--model NAME`` and ``--weights PATH``: the path as given, else the file of the
+    embedded model (None: neither, the default embedded model); SekdError for both at once, or for --model with a
+    ``feature`` other than SEKD."""
     from sekd_sfm.errors import SekdError
     from sekd_sfm.model.weights import embedded_model_path
 
-    model = ctx.meta.get(MODEL_KEY)
     if model is None:
-        return value
-    if value is not None:
-        raise SekdError(f"--model {model} and --weights {value} both name the SEKD model; give one of them")
-    # A check while parsing (the one place that sees both): --feature is parsed by now.
-    feature = ctx.params.get("feature")
+        return weights
+    if weights is not None:
+        raise SekdError(f"--model {model} and --weights {weights} both name the SEKD model; give one of them")
     if feature not in (None, "sekd"):
         raise SekdError(f"--model {model} selects a SEKD model; --feature {feature} does not use it (drop --model)")
     return str(embedded_model_path(model))
 
 
-def weights_option(f):
-    """--weights PATH and --model own|authors, passed on as ``weights`` (None: the default embedded model)."""
+def weights_declarations(f):
+    """--model own|authors|lite and --weights PATH, each passed as itself (``model_weights`` makes them one)."""
     from sekd_sfm.model.weights import DEFAULT_MODEL, EMBEDDED_MODELS
 
-    f = click.option(
-        "--weights", type=click.Path(dir_okay=False), default=None, callback=_weights_or_model,
-        help="SEKD checkpoint (.pth): the authors' format or ours, e.g. one made by `sekd adapt`. "
-             "Default: the --model embedded in the package.",
-    )(f)
-    return click.option(
-        "--model", type=click.Choice(tuple(EMBEDDED_MODELS)), default=None, is_eager=True, expose_value=False,
-        callback=_keep_model,
-        help=f"Embedded SEKD model (default {DEFAULT_MODEL}): authors = the SEKD authors' release (MIT), "
-             "own = trained by this project's `sekd evolve`, lite = SEKD-Lite, distilled from authors, "
-             "several times faster (docs/model_card*.md).",
-    )(f)
+    return _stack([
+        # eager, as before: a wrong --model is reported before the other options
+        click.option(
+            "--model", type=click.Choice(tuple(EMBEDDED_MODELS)), default=None, is_eager=True,
+            help=f"Embedded SEKD model (default {DEFAULT_MODEL}): authors = the SEKD authors' release (MIT), "
+                 "own = trained by this project's `sekd evolve`, lite = SEKD-Lite, distilled from authors, "
+                 "several times faster (docs/model_card*.md)."),
+        click.option(
+            "--weights", type=click.Path(dir_okay=False), default=None,
+            help="SEKD checkpoint (.pth): the authors' format or ours, e.g. one made by `sekd adapt`. "
+                 "Default: the --model embedded in the package."),
+    ], f)
+
+
+def weights_option(f):
+    """--weights PATH and --model own|authors|lite, passed on as ``weights`` (None: the default embedded model)."""
+
+    @functools.wraps(f)
+    def command(*args, model: str | None, weights: str | None, **kwargs):
+        return f(*args, weights=model_weights(model, weights, kwargs.get("feature")), **kwargs)
+
+    return weights_declarations(command)
 
 
 num_threads_option = click.option(
@@ -127,11 +130,6 @@ precision_option = click.option(
     help="auto = bf16 on CPUs with native bf16 (AVX512-BF16/AMX, ~4x faster), else fp32. "
          "int8 = quantized network (CPU; needs pip install \"sekd-sfm[int8]\"; calibrated once "
          "per weights, cached in ~/.cache/sekd or $SEKD_CACHE).")
-
-
-def runtime_options(f):
-    """--precision, --device, --num-threads."""
-    return _stack((precision_option, device_option, num_threads_option), f)
 
 
 RESIZE_HELP = "Downscale images so the long side is at most N px; keypoints are mapped back to original pixels."
@@ -173,12 +171,30 @@ masks_option = click.option(
 
 def extraction_options(*, max_pixels: bool = True, masks: bool = False, resize_help: str = RESIZE_HELP) -> Decorator:
     """The group ``extraction``: --feature ... --subpixel, --max-pixels (if ``max_pixels``), --masks (if ``masks``),
-    --model/--weights, --precision and --device; what ``presets.feature_and_match_configs`` makes a FeatureConfig
-    of (and the matcher's device; ``masks`` is read by the command itself)."""
+    --model/--weights (passed as one value, ``weights``), --precision and --device; what
+    ``presets.feature_and_match_configs`` makes a FeatureConfig of (and the matcher's device; ``masks`` is read by
+    the command itself)."""
     declarations = [functools.partial(feature_options, resize_help=resize_help)]
     declarations += [max_pixels_option] if max_pixels else []
     declarations += [masks_option] if masks else []
-    return option_group("extraction", *declarations, weights_option, precision_option, device_option)
+    group = option_group("extraction", *declarations, weights_declarations, precision_option, device_option)
+
+    def decorate(command: Callable) -> Callable:
+        @functools.wraps(command)
+        def with_weights(*args, extraction: OptionValues, **kwargs):
+            return command(*args, extraction=_model_as_weights(extraction), **kwargs)
+
+        return group(with_weights)
+
+    return decorate
+
+
+def _model_as_weights(extraction: OptionValues) -> OptionValues:
+    """The group ``extraction`` with --model turned into its ``weights`` (``model_weights``)."""
+    values = dict(extraction.values)
+    model = values.pop("model")
+    values["weights"] = model_weights(model, values["weights"], values.get("feature"))
+    return OptionValues(values, extraction.explicit - {"model"})
 
 
 def executor_declarations(f):

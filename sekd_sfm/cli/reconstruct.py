@@ -2,7 +2,7 @@
 
 The SfM commands (these and ``sekd bench sfm``) take their options in groups, each passed to the
 command as one argument (``options.option_group``): extraction, pairing, matching, camera,
-mapping, execution. ``reconstruct_config`` and ``run_settings`` turn the groups into the typed
+mapping, execution. ``reconstruct_config`` and ``run_options`` turn the groups into the typed
 settings of ``sekd_sfm.pipelines.reconstruct``: the one place where an option becomes a setting.
 """
 from __future__ import annotations
@@ -14,11 +14,16 @@ from typing import TYPE_CHECKING
 import click
 
 from sekd_sfm.confs import output_names
+from sekd_sfm.stages.database import (
+    CAMERA_MODES,
+    PRINCIPAL_POINT_MIN_IMAGES,
+    PRINCIPAL_POINT_MODES,
+    CameraConfig,
+)
 from sekd_sfm.stages.pairs import PairsConfig
-from sekd_sfm.stages.database import CAMERA_MODES, PRINCIPAL_POINT_MIN_IMAGES, PRINCIPAL_POINT_MODES, CameraConfig
 
 from .adapt import adapt_in_line, adapt_option
-from .match import match_options, pairs_config, pairs_options
+from .match import matching_options, pairing_options, pairs_config
 from .options import (
     Decorator,
     OptionValues,
@@ -28,7 +33,7 @@ from .options import (
     option_group,
     ray_options,
 )
-from .presets import conf_option, current_conf, feature_and_match_configs
+from .presets import conf_option, feature_and_match_configs
 
 if TYPE_CHECKING:  # imported where used: the CLI starts without torch and pycolmap
     from sekd_sfm.pipelines.reconstruct import ReconstructConfig, RunOptions
@@ -128,8 +133,6 @@ def mapping_options(*, verification: bool = True) -> Decorator:
     return option_group("mapping", *declarations, seed_option)
 
 
-pairing_options = option_group("pairing", pairs_options)
-matching_options = option_group("matching", match_options)
 execution_options = option_group(
     "execution",
     click.option("--overwrite", is_flag=True, help="Recompute features and matches instead of reusing them."),
@@ -139,13 +142,15 @@ execution_options = option_group(
 
 
 def reconstruct_config(extraction: OptionValues, matching: OptionValues, camera: OptionValues, mapping: OptionValues,
-                       *, pairs: PairsConfig, conf: str | None = None) -> ReconstructConfig:
+                       *, pairs: PairsConfig, conf: str | None = None) -> tuple[ReconstructConfig, frozenset[str]]:
     """The ReconstructConfig of the option groups of `reconstruct` and `bench sfm`, the --conf preset ``conf``
-    applied to the options left at their defaults."""
+    applied to the options left at their defaults, and the fields of its ``features`` and ``matching`` that the
+    user set (explicitly or through ``conf``; ``confs.build_configs``)."""
     from sekd_sfm.pipelines.reconstruct import DEFAULT_RESIZE_MAX, ReconstructConfig
 
-    features, matcher = feature_and_match_configs(extraction, matching, conf)
-    features.resize_max = features.resize_max or DEFAULT_RESIZE_MAX  # see RECONSTRUCT_RESIZE_HELP
+    # resize_max: see RECONSTRUCT_RESIZE_HELP
+    features, matcher, given = feature_and_match_configs(extraction, matching, conf=conf,
+                                                         defaults={"resize_max": DEFAULT_RESIZE_MAX})
     masks = extraction.get("masks")  # an absolute path: stats.json records it for later commands (export)
     config = ReconstructConfig(features=features, pairs=pairs, matching=matcher, camera=camera_config(camera),
                                mapper_type=mapping["mapper_type"], mapper=list(mapping["mapper"]),
@@ -155,16 +160,16 @@ def reconstruct_config(extraction: OptionValues, matching: OptionValues, camera:
     config.final_filter = mapping.get("final_filter", True)
     if conf:  # hloc-style names, so the files of several presets coexist in OUTPUT
         config.file_names = output_names(conf, "pairs")
-    return config
+    return config, given
 
 
-def run_settings(execution: OptionValues, num_threads: int | None) -> RunOptions:
+def run_options(execution: OptionValues, num_threads: int | None) -> RunOptions:
     """The RunOptions of the group ``execution`` and --num-threads."""
     from sekd_sfm.pipelines.reconstruct import RunOptions
 
     return RunOptions(overwrite=execution["overwrite"], num_threads=num_threads,
-                       progress=not execution["no_progress"], executor=execution["executor"],
-                       ray_options=ray_options(execution))
+                      progress=not execution["no_progress"], executor=execution["executor"],
+                      ray_options=ray_options(execution))
 
 
 @click.command()
@@ -197,10 +202,10 @@ def run_settings(execution: OptionValues, num_threads: int | None) -> RunOptions
               help="With --extend: let the earlier cameras' poses and intrinsics move too (the mapper's bundle "
                    "adjustments refine them with the new ones); by default they stay bitwise as they were.")
 @execution_options
-def reconstruct(images: Path, output: Path, extraction: OptionValues, num_threads: int | None, pairing: OptionValues,
-                matching: OptionValues, camera: OptionValues, mapping: OptionValues, features_file: Path | None,
-                matches_file: Path | None, gps: str, extend: bool, extend_refine: bool,
-                execution: OptionValues) -> None:
+def reconstruct(images: Path, output: Path, conf: str | None, extraction: OptionValues, num_threads: int | None,
+                pairing: OptionValues, matching: OptionValues, camera: OptionValues, mapping: OptionValues,
+                adapt: bool, features_file: Path | None, matches_file: Path | None, gps: str, extend: bool,
+                extend_refine: bool, execution: OptionValues) -> None:
     """Reconstruct cameras and 3D points from the images below IMAGES (COLMAP SfM through pycolmap).
 
     \b
@@ -233,51 +238,43 @@ def reconstruct(images: Path, output: Path, extraction: OptionValues, num_thread
     from sekd_sfm.pipelines.reconstruct import ReconstructionError
     from sekd_sfm.pipelines.reconstruct import reconstruct as run
 
-    config = reconstruct_config(extraction, matching, camera, mapping, pairs=pairs_config(**pairing.values),
-                                conf=current_conf())
+    config, given = reconstruct_config(extraction, matching, camera, mapping, pairs=pairs_config(**pairing.values),
+                                       conf=conf)
+    # What --extend checks, of the configuration the options made (before --gps and --adapt's weights)
+    extension = _extend_options(config, given, pairing, extend_refine) if extend else None
     config.gps.mode = gps
-    settings = run_settings(execution, num_threads)
-    adapt_in_line(images, output, config.features, settings.num_threads, settings.progress)  # --adapt: new weights
-    groups = {"extraction": extraction, "pairing": pairing, "matching": matching, "camera": camera, "mapping": mapping}
+    options = run_options(execution, num_threads)
+    if adapt:  # new weights
+        adapt_in_line(images, output, config.features, options.num_threads, options.progress)
     if extend_refine and not extend:
         raise click.UsageError("--extend-refine goes with --extend")
-    extension = _extend_options(groups, extend_refine) if extend else None
     try:
-        run(images, output, config, features=features_file, matches=matches_file, options=settings, extend=extension)
+        run(images, output, config, features=features_file, matches=matches_file, options=options, extend=extension)
     except ReconstructionError:
         _echo_summary(output)
         raise
     _echo_summary(output)
 
 
-def _extend_options(groups: dict[str, OptionValues], refine: bool):
-    """``--extend``'s settings: the configuration fields the user set explicitly (each option's effect: the
-    fields that change when it is put back to its default), to be checked against the model's record."""
+def _extend_options(config: ReconstructConfig, given: frozenset[str], pairing: OptionValues, refine: bool):
+    """``--extend``'s settings: the configuration fields the user set, to be checked against the model's record.
+
+    Those of ``features`` and ``matching`` are ``given`` (``confs.build_configs``: the options given explicitly
+    and the --conf preset, where they change a field); every other field is set by one option of its own, which
+    left out takes the field's default (the options declare the configuration's defaults), and counts where it
+    differs from that default (--conf: the file names).
+    """
     from dataclasses import asdict
 
     from sekd_sfm.pipelines.extend import ExtendOptions, flatten
+    from sekd_sfm.pipelines.reconstruct import ReconstructConfig
 
-    ctx = click.get_current_context()
-    defaults = {p.name: p.get_default(ctx) for p in ctx.command.params}
-
-    def fields(values: dict[str, OptionValues], conf: str | None) -> dict:
-        g = values
-        built = reconstruct_config(g["extraction"], g["matching"], g["camera"], g["mapping"],
-                                   pairs=pairs_config(**g["pairing"].values), conf=conf)
-        return flatten(asdict(built))
-
-    conf = current_conf()
-    given_fields = fields(groups, conf)
-    given: dict = {}
-    variants = [(name, key) for name, group in groups.items() for key in group.explicit]
-    for name, key in variants:
-        group = groups[name]
-        reset = OptionValues({**group.values, key: defaults.get(key)}, group.explicit - {key})
-        other = fields({**groups, name: reset}, conf)
-        given.update({f: v for f, v in given_fields.items() if other.get(f) != v})
-    if conf:
-        given.update({f: v for f, v in given_fields.items() if fields(groups, None).get(f) != v})
-    return ExtendOptions(refine=refine, given=given)
+    fields, defaults = flatten(asdict(config)), flatten(asdict(ReconstructConfig()))
+    chosen = {f: v for f, v in fields.items()
+              if (f in given if f.startswith(("features.", "matching.")) else v != defaults[f])}
+    if pairing["num_neighbors"] is not None:  # --num-neighbors itself is not checked (the default K that
+        chosen.pop("pairs.num_neighbors", None)  # --pairs retrieval adds to a --pairs-file is)
+    return ExtendOptions(refine=refine, given=chosen)
 
 
 def _echo_summary(output: Path) -> None:
@@ -306,8 +303,9 @@ def _echo_summary(output: Path) -> None:
 @click.option("--seed", type=int, default=0, show_default=True, help="RANSAC random seed.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write the JSON to this file.")
-def relpose(image0: Path, image1: Path, extraction: OptionValues, num_threads: int | None, matching: OptionValues,
-            camera_model: str, camera_params: str | None, max_error: float, seed: int, output: Path | None) -> None:
+def relpose(image0: Path, image1: Path, conf: str | None, extraction: OptionValues, num_threads: int | None,
+            matching: OptionValues, camera_model: str, camera_params: str | None, max_error: float, seed: int,
+            output: Path | None) -> None:
     """Relative pose of IMAGE1 with respect to IMAGE0, printed as JSON.
 
     \b
@@ -318,11 +316,11 @@ def relpose(image0: Path, image1: Path, extraction: OptionValues, num_threads: i
     Example:
       sekd relpose a.jpg b.jpg --feature sift --camera-model PINHOLE --camera-params 2759.5,2764.2,1521.2,1007.3
     """
-    from sekd_sfm.runtime import set_num_threads
     from sekd_sfm.pipelines.relpose import RelposeConfig, relative_pose
+    from sekd_sfm.runtime import set_num_threads
 
     set_num_threads(num_threads)
-    features, matcher = feature_and_match_configs(extraction, matching, current_conf())
+    features, matcher, _ = feature_and_match_configs(extraction, matching, conf=conf)
     config = RelposeConfig(features=features, matching=matcher, camera_model=camera_model, camera_params=camera_params,
                            max_error=max_error, seed=seed)
     text = json.dumps(relative_pose(image0, image1, config), indent=2)

@@ -109,7 +109,12 @@ def model(model: Path, output: Path, max_points: int | None) -> None:
       sekd show model out/model -o view.png
     """
     from sekd_sfm.errors import SekdError
-    from sekd_sfm.stages.export import HTML_MAX_POINTS, export_html, model_folder, read_model
+    from sekd_sfm.stages.export import (
+        HTML_MAX_POINTS,
+        export_html,
+        model_folder,
+        read_model,
+    )
     from sekd_sfm.viz import MODEL_PNG_MAX_POINTS, draw_model, write_png
 
     suffix = output.suffix.lower()

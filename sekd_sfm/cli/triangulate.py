@@ -13,6 +13,7 @@ import click
 
 from sekd_sfm.confs import output_names
 
+from .match import matching_options
 from .options import (
     OptionValues,
     extraction_options,
@@ -20,11 +21,10 @@ from .options import (
     option_group,
     ray_options,
 )
-from .presets import conf_option, current_conf, feature_and_match_configs
+from .presets import conf_option, feature_and_match_configs
 from .reconstruct import (
     RECONSTRUCT_RESIZE_HELP,
     execution_options,
-    matching_options,
     refine_option,
     seed_option,
     verification_option,
@@ -95,8 +95,9 @@ def triangulate_config(extraction: OptionValues, matching: OptionValues, pairing
     from sekd_sfm.pipelines.reconstruct import DEFAULT_RESIZE_MAX
     from sekd_sfm.pipelines.triangulate import TriangulateConfig
 
-    features, matcher = feature_and_match_configs(extraction, matching, conf)
-    features.resize_max = features.resize_max or DEFAULT_RESIZE_MAX  # as reconstruct (RECONSTRUCT_RESIZE_HELP)
+    # resize_max: as reconstruct (RECONSTRUCT_RESIZE_HELP)
+    features, matcher, _ = feature_and_match_configs(extraction, matching, conf=conf,
+                                                     defaults={"resize_max": DEFAULT_RESIZE_MAX})
     config = TriangulateConfig(
         features=features, matching=matcher, pairs=pairing["pair_source"], num_neighbors=pairing["num_neighbors"],
         max_angle_deg=pairing["max_angle"], camera_model=camera["camera_model"], camera_params=camera["camera_params"],
@@ -123,9 +124,9 @@ def triangulate_config(extraction: OptionValues, matching: OptionValues, pairing
 @pose_camera_options
 @triangulation_options
 @execution_options
-def triangulate(photos: Path, poses: Path, output: Path, extraction: OptionValues, num_threads: int | None,
-                pairing: OptionValues, matching: OptionValues, camera: OptionValues, triangulation: OptionValues,
-                execution: OptionValues) -> None:
+def triangulate(photos: Path, poses: Path, output: Path, conf: str | None, extraction: OptionValues,
+                num_threads: int | None, pairing: OptionValues, matching: OptionValues, camera: OptionValues,
+                triangulation: OptionValues, execution: OptionValues) -> None:
     """Triangulate 3D points from the photos below PHOTOS with known camera poses, which stay exactly as given.
 
     \b
@@ -148,7 +149,7 @@ def triangulate(photos: Path, poses: Path, output: Path, extraction: OptionValue
     from sekd_sfm.pipelines.triangulate import format_triangulation
     from sekd_sfm.pipelines.triangulate import triangulate as run
 
-    config = triangulate_config(extraction, matching, pairing, camera, triangulation, current_conf())
+    config = triangulate_config(extraction, matching, pairing, camera, triangulation, conf)
     run(photos, poses, output, config, overwrite=execution["overwrite"], num_threads=num_threads,
         progress=not execution["no_progress"], executor=execution["executor"], ray_options=ray_options(execution))
     click.echo(format_triangulation(json.loads((output / "stats.json").read_text())))
@@ -163,8 +164,8 @@ def triangulate(photos: Path, poses: Path, output: Path, extraction: OptionValue
 @num_threads_option
 @matching_options
 @triangulation_options
-def triangulate_benchmark(scene: str, output: Path, extraction: OptionValues, num_threads: int | None,
-                          matching: OptionValues, triangulation: OptionValues) -> None:
+def triangulate_benchmark(scene: str, output: Path, conf: str | None, extraction: OptionValues,
+                          num_threads: int | None, matching: OptionValues, triangulation: OptionValues) -> None:
     """Triangulate SCENE from its ground-truth poses and intrinsics; compare with its free reconstruction.
 
     \b
@@ -187,6 +188,6 @@ def triangulate_benchmark(scene: str, output: Path, extraction: OptionValues, nu
     pairing = OptionValues({"pair_source": "covisibility", "num_neighbors": DEFAULT_NEIGHBORS,
                             "max_angle": DEFAULT_MAX_ANGLE_DEG})
     camera = OptionValues({"camera_model": "SIMPLE_RADIAL", "camera_params": None, "refine_intrinsics": False})
-    config = triangulate_config(extraction, matching, pairing, camera, triangulation, current_conf())
+    config = triangulate_config(extraction, matching, pairing, camera, triangulation, conf)
     report = benchmark_triangulation(scene, output, config, num_threads=num_threads)
     click.echo(triangulation_markdown(report))

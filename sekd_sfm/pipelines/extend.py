@@ -1,67 +1,46 @@
 """``sekd reconstruct PHOTOS -o OUT --extend``: add the photos OUT's model lacks, without moving what it has.
 
 The photos of PHOTOS that OUT's database does not hold yet are extracted, paired, matched,
-refined, imported and registered into OUT's model with the settings OUT was built with
-(stats.json ``config``):
+refined, imported and registered into OUT's model with the settings OUT was built with (the
+``config`` of its record, ``record.STATS``). ``EXTEND`` lists the steps, each
+``step(run, state) -> state`` over an ``Extension`` (``run.py``):
 
+* extract: the new photos' features, added to OUT's feature file;
 * pairs: the pairs OUT's pairing mode would choose among all its photos plus the new ones
   (exhaustive while that is small, retrieval with the same vocabulary above), those with
-  at least one new photo; matched into OUT's match file (only the missing pairs are matched);
-* keypoints: the new photos' keypoints are refined with the earlier photos' refined keypoints
+  at least one new photo; match: into OUT's match file (only the missing pairs are matched);
+* refine: the new photos' keypoints are refined with the earlier photos' refined keypoints
   held fixed (``refine_keypoints(anchor=...)``), so the earlier ones stay what the model has;
 * database: the new photos are added to a copy of OUT's database (image and camera ids of
-  the earlier photos unchanged; a new photo of an existing camera joins it) and only the new
-  pairs are verified;
+  the earlier photos unchanged; a new photo of an existing camera joins it); verification:
+  only the new pairs are verified;
 * mapping: pycolmap's incremental mapper continues from OUT's model with the existing frames
   and cameras fixed in every bundle adjustment (``--extend-refine`` lets everything move),
-  and triangulates new points. Earlier poses are then checked to be bitwise unchanged.
+  and triangulates new points. Earlier poses are then checked to be bitwise unchanged;
+* record, commit: OUT's record gets the extension's entry (``extensions[-1]``), and the staged
+  files replace OUT's.
 
-Crash safety: everything is staged in ``OUT/extend/`` (database copy, refined keypoints,
-model, pairs, stats.json); a journal (``OUT/extend/commit.json``) is written when the staged
-files are complete, then the model folder is exchanged with ``model/`` atomically (Linux
-``renameat2(RENAME_EXCHANGE)``; elsewhere two renames, ``model.backup`` then holds the old
-one) and the other files replace theirs. A later run finishes an interrupted commit first
-(roll forward) and otherwise discards an incomplete stage, so kill -9 at any moment, then
-the same command again, gives the result of an uninterrupted run, and ``model/`` is always a
-complete model (the earlier one until the exchange, the new one from then on).
+Crash safety (``extend_commit.py``): everything is staged in ``OUT/extend/`` and committed
+through a journal, so kill -9 at any moment, then the same command again, gives the result
+of an uninterrupted run, and ``model/`` is always a complete model.
 """
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import dataclasses
-import json
 import logging
-import os
-import shutil
 import sqlite3
 import time
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import h5py
 import numpy as np
 
-from .. import execution
 from ..errors import SekdError
-from ..stages.extract import extract_features
-from ..features import FeatureConfig
 from ..files import features as ff
 from ..files.images import list_images
-from ..files.locking import exclusive_lock
-from ..stages.match import MatchConfig, match_features
-from ..stages.pairs import (
-    PairsConfig,
-    generate_pairs,
-    read_pairs,
-    resolve_mode,
-    split_writable,
-    unique_pairs,
-    warn_skipped,
-    write_pairs,
-)
-from ..stages.retrieval import compute_global_descriptors, nearest_neighbors
 from ..runtime import package_versions
 from ..stages.colmap import (
     clean_logs,
@@ -71,29 +50,52 @@ from ..stages.colmap import (
     require_pycolmap,
     set_options,
 )
-from ..stages.database import CameraConfig, add_to_database, two_view_options, verify_matches
+from ..stages.database import add_to_database, two_view_options, verify_matches
+from ..stages.extract import extract_features
 from ..stages.mapping import (
-    MAIN_MODEL,
     clean_scratch,
     default_options,
     model_stats,
     registered_names,
     run_mapper,
 )
-from ..stages.refine import RefineConfig, refine_keypoints, refine_summary
-from .report import (
-    StageTimer,
-    match_statistics,
-    summarize_matches,
-    unregistered_report,
+from ..stages.match import match_features
+from ..stages.pairs import (
+    PairsConfig,
+    generate_pairs,
+    resolve_mode,
+    split_writable,
+    unique_pairs,
+    warn_skipped,
+    write_pairs,
 )
-from ..files.atomic import write_json
+from ..stages.refine import refine_keypoints, refine_summary
+from ..stages.retrieval import compute_global_descriptors, nearest_neighbors
+from . import record
+from .config import ReconstructConfig
+from .extend_commit import (
+    NEW_PAIRS,
+    REFINED,
+    STAGE,
+    commit,
+    recover,
+    stage_model,
+    write_journal,
+)
+from .report import match_statistics, summarize_matches, unregistered_report
+from .run import Run, RunOptions, Step, run_steps
+
+if TYPE_CHECKING:
+    import pycolmap
 
 logger = logging.getLogger("sekd")
-#: The staging folder of an extension inside OUT, and the commit journal in it.
-STAGE = "extend"
-JOURNAL = "commit.json"
-BACKUP = "model.backup"
+
+__all__ = ["EXTEND", "UNCHECKED", "ExtendOptions", "Extension", "check_given", "commit", "copy_database",
+           "database_names", "extend_model", "extension_options", "flatten", "keep_frame", "new_pairs", "pose_matrix",
+           "restore_fixed", "same_pose", "settle_database", "verify_new_pairs"]
+
+#: COLMAP's log of the extension in OUT (the build's own, ``record.COLMAP_LOG``, is left as it was).
+LOG = "colmap-extend.log"
 #: Config fields that never conflict: the network's path is not recorded (the feature file checks the network).
 UNCHECKED = ("features.weights",)
 
@@ -101,7 +103,7 @@ UNCHECKED = ("features.weights",)
 @dataclass(frozen=True)
 class ExtendOptions:
     """``--extend`` settings. ``refine``: let the earlier cameras' poses and intrinsics move (``--extend-refine``).
-    ``given``: configuration fields (dotted, as in stats.json ``config``) the user set explicitly, with
+    ``given``: configuration fields (dotted, as in the record's ``config``) the user set explicitly, with
     their values: each must agree with OUT's record."""
 
     refine: bool = False
@@ -109,49 +111,37 @@ class ExtendOptions:
 
 
 @dataclass
-class _Recorded:
-    """The stage settings of OUT's record (stats.json ``config``)."""
+class Extension:
+    """What the steps of ``EXTEND`` have made so far, and the records they fill.
 
-    features: FeatureConfig
-    pairs: PairsConfig
-    matching: MatchConfig
-    camera: CameraConfig
-    refine: RefineConfig
-    mapper: list[str]
-    verification: list[str]
-    seed: int
-    file_names: tuple[str, str]
-    masks: str | None
-    #: Models built before the final filter existed record none: their extensions are not filtered either.
-    final_filter: bool = False
+    ``earlier``: OUT's record, which becomes the extended OUT's (``entry``, the extension's own, appended to its
+    ``extensions``); ``config``: its settings, typed; ``known``: the photos of OUT's database; ``new``: those below
+    PHOTOS it lacks; ``added``: the new ones extracted (unreadable photos are skipped); ``stage``: where every file
+    of the extension is made before the commit; ``keypoints``: what the database gets (refined, or the features);
+    ``log``: COLMAP's log, open from the database step to the model check (``log_context``).
+    """
 
-
-def _typed(cls, data: dict):
-    """The dataclass ``cls`` from a dict of asdict(); unknown keys (newer or older records) are ignored."""
-    values = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in data:
-            continue
-        value = data[f.name]
-        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
-        if dataclasses.is_dataclass(default) and isinstance(value, dict):
-            value = _typed(type(default), value)
-        elif isinstance(default, tuple) and isinstance(value, list):
-            value = tuple(value)
-        values[f.name] = value
-    return cls(**values)
-
-
-def _recorded(config: dict, weights: str | None) -> _Recorded:
-    features = _typed(FeatureConfig, config.get("features", {}))
-    features.weights = weights
-    return _Recorded(features=features, pairs=_typed(PairsConfig, config.get("pairs", {})),
-                     matching=_typed(MatchConfig, config.get("matching", {})),
-                     camera=_typed(CameraConfig, config.get("camera", {})),
-                     refine=_typed(RefineConfig, config.get("refine", {})), mapper=list(config.get("mapper", [])),
-                     verification=list(config.get("verification", [])), seed=int(config.get("seed", 0)),
-                     file_names=tuple(config.get("file_names", ("features.h5", "matches.h5"))),
-                     masks=config.get("masks"), final_filter=bool(config.get("final_filter", False)))
+    image_dir: Path
+    options: ExtendOptions
+    earlier: record.Record
+    config: ReconstructConfig
+    known: list[str]
+    new: list[str]
+    stage: Path
+    features: Path
+    matches: Path
+    entry: dict = field(default_factory=dict)
+    added: list[str] = field(default_factory=list)
+    pairs: list = field(default_factory=list)
+    pairs_file: Path | None = None
+    keypoints: Path | None = None
+    database: Path | None = None
+    log: Path | None = None
+    log_context: ExitStack | None = None
+    mapper: pycolmap.IncrementalPipelineOptions | None = None
+    match_stats: dict = field(default_factory=dict)
+    models: list[pycolmap.Reconstruction] = field(default_factory=list)
+    model: pycolmap.Reconstruction | None = None
 
 
 def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
@@ -165,29 +155,24 @@ def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
 
 
 def check_given(given: dict, config: dict, out: Path) -> None:
-    """SekdError when an explicitly given setting differs from the one OUT's model was built with."""
+    """SekdError when an explicitly given setting differs from the one OUT's model was built with (``config``: the
+    record's, as recorded)."""
     recorded = flatten(config)
     wrong = {k: v for k, v in flatten(given).items() if k not in UNCHECKED and k in recorded and recorded[k] != v}
     if wrong:
         listed = ", ".join(f"{k} = {v!r} (built with {recorded[k]!r})" for k, v in sorted(wrong.items()))
-        raise SekdError(f"{out / 'stats.json'}: --extend adds photos with the settings the model was built with, "
+        raise SekdError(f"{record.record_path(out)}: --extend adds photos with the settings the model was built with, "
                         f"but these options differ: {listed}; leave them out")
 
 
-def refined_path(out: Path, features_name: str) -> Path:
-    """OUT's refined keypoints: features.h5 -> features-refined.h5 (as ``reconstruct`` names them)."""
-    path = Path(features_name)
-    return out / f"{path.stem}-refined{path.suffix or '.h5'}"
-
-
-def extend_model(image_dir: str | Path, output_dir: str | Path, options: ExtendOptions, settings: Any,
+def extend_model(image_dir: str | Path, output_dir: str | Path, options: ExtendOptions, run_options: RunOptions,
                  weights: str | None = None) -> Path:
     """Add the photos below ``image_dir`` that ``output_dir``'s model lacks; returns the model's folder.
 
-    ``settings``: the run's RunSettings (``sekd_sfm.pipelines.reconstruct``: threads, progress, executor);
-    ``weights``: the feature network's file when not the packaged one (not recorded in stats.json).
-    Photos already in OUT's database (registered or not) are not new: with none new, nothing is
-    done ("nothing to add"). SekdError when OUT holds no finished model or its settings conflict.
+    ``run_options``: how the run runs (threads, progress, executor); ``weights``: the feature network's file when
+    not the packaged one (records leave it out). Photos already in OUT's database (registered or not) are not new:
+    with none new, nothing is done ("nothing to add"). SekdError when OUT holds no finished model or its settings
+    conflict.
     """
     require_pycolmap()
     image_dir, out = Path(image_dir), Path(output_dir)
@@ -196,39 +181,37 @@ def extend_model(image_dir: str | Path, output_dir: str | Path, options: ExtendO
     if not out.is_dir():
         raise SekdError(f"{out}: no such folder, so no model to extend; build one first: "
                         f"sekd reconstruct {image_dir} -o {out}")
-    with exclusive_lock(out, what="reconstruction folder"):
-        clean_scratch(out)
-        clean_logs(out / "colmap-extend.log")
-        if (out / STAGE / JOURNAL).is_file():  # a commit was interrupted: finish it, then see what is left
-            logger.warning("%s: finishing the extension an earlier run was interrupted in", out)
-            commit(out)
-        shutil.rmtree(out / STAGE, ignore_errors=True)  # an unfinished stage is made again from the start
-        return _extend(image_dir, out, options, settings, weights)
+    with Run(out, run_options, lock="reconstruction folder") as run:
+        clean_scratch(out)  # left by a killed run: nobody else can be using them while we hold the lock
+        clean_logs(out / LOG)
+        recover(out)  # an interrupted commit finished, an unfinished stage dropped
+        state = _extension(image_dir, out, options, weights)
+        if state is not None:
+            run_steps(run, EXTEND, state)
+        return out / record.MODEL
 
 
-def _read_stats(out: Path) -> dict:
-    path = out / "stats.json"
+def _finished_record(out: Path) -> record.Record:
+    """OUT's record; SekdError unless it is that of a successful ``sekd reconstruct`` of photos."""
     try:
-        stats = json.loads(path.read_text())
-    except (OSError, ValueError):
-        stats = None
-    model = out / MAIN_MODEL
-    if not stats or stats.get("status") != "ok" or not (model / "images.bin").is_file():
-        raise SekdError(f"{out}: holds no finished model (model/ and stats.json of a successful "
+        earlier = record.Record.from_record(out, needs="")
+    except SekdError:  # no readable record: no model to extend, said as for an unfinished one
+        earlier = None
+    if earlier is None or not earlier.finished:
+        raise SekdError(f"{out}: holds no finished model (model/ and {record.STATS} of a successful "
                         "`sekd reconstruct`) to extend; run sekd reconstruct without --extend first")
-    inputs = stats.get("inputs") or {}
-    if inputs.get("features") or inputs.get("matches"):
+    if earlier.inputs.get("features") or earlier.inputs.get("matches"):
         raise SekdError(f"{out}: was built from given files (--features/--matches), which --extend cannot add "
                         "photos to; rebuild it from the photos")
-    return stats
+    return earlier
 
 
-def _extend(image_dir: Path, out: Path, options: ExtendOptions, settings: Any, weights: str | None) -> Path:
-    stats = _read_stats(out)
-    check_given(options.given, stats.get("config", {}), out)
-    config = _recorded(stats["config"], weights)
-    database = out / "database.db"
-    known = database_names(database)
+def _extension(image_dir: Path, out: Path, options: ExtendOptions, weights: str | None) -> Extension | None:
+    """The extension to make, its settings checked against OUT's record; None (a warning) when no photo is new."""
+    earlier = _finished_record(out)
+    check_given(options.given, earlier.config_data, out)
+    config = earlier.config(weights)
+    known = database_names(out / record.DATABASE)
     on_disk = list_images(image_dir)
     missing = sorted(known - set(on_disk))
     if missing:
@@ -237,83 +220,160 @@ def _extend(image_dir: Path, out: Path, options: ExtendOptions, settings: Any, w
     new = [name for name in on_disk if name not in known]
     if not new:
         logger.warning("%s: nothing to add: every photo of %s is already in the model's database", out, image_dir)
-        return out / MAIN_MODEL
-    timer, stage = StageTimer(), out / STAGE
-    stage.mkdir()
-    record = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "images_dir": str(image_dir),
-              "refine_existing": options.refine, "versions": package_versions(),
-              "config": stats["config"]}  # the settings used: the model's own
-    staged = _stage(image_dir, out, stage, config, options, settings, sorted(known), new, timer, record)
-    record["timings_s"] = {**timer.seconds, "total": round(sum(timer.seconds.values()), 3)}
-    stats.setdefault("extensions", []).append(record)
-    _stage_stats(stats, staged, stage)
-    _write_journal(stage, out)
-    commit(out)
+        return None
+    return Extension(image_dir, options, earlier, config, sorted(known), new, out / STAGE,
+                     features=out / config.file_names[0], matches=out / config.file_names[1])
+
+
+# ----------------------------------------------------------------------------- the steps, in order
+
+def open_stage(run: Run, s: Extension) -> Extension:
+    """The staging folder, and the extension's entry: when, from where, with which settings (the model's own)."""
+    s.stage.mkdir()
+    s.entry = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "images_dir": str(s.image_dir),
+               "refine_existing": s.options.refine, "versions": package_versions(),
+               "config": s.earlier.config_data}
+    return s
+
+
+def extract(run: Run, s: Extension) -> Extension:
+    """The new photos' features, added to OUT's feature file."""
+    extract_features(s.image_dir, s.features, s.config.features, num_threads=run.num_threads, progress=run.progress,
+                     executor=run.executor, masks=Path(s.config.masks) if s.config.masks else None)
+    return s
+
+
+def check_added(run: Run, s: Extension) -> Extension:
+    """The new photos extraction could read; SekdError when none, or when the earlier photos' keypoints changed."""
+    extracted = set(ff.list_keys(s.features))
+    s.added = [name for name in s.new if name in extracted]  # unreadable photos are skipped with a warning
+    s.entry["added"] = s.added
+    if not s.added:
+        raise SekdError(f"{s.image_dir}: none of the {len(s.new)} new photo(s) could be read (e.g. {s.new[0]}); "
+                        "nothing was added")
+    _check_features(s.features, run.out / record.DATABASE, s.known)
+    return s
+
+
+def pairs(run: Run, s: Extension) -> Extension:
+    """The new photos' pairs (``new_pairs``), staged as ``NEW_PAIRS``."""
+    s.pairs = new_pairs(s.features, s.known, s.added, s.config.pairs, run.progress)
+    s.pairs_file = write_pairs(s.pairs, s.stage / NEW_PAIRS)
+    s.entry["pairs"] = len(s.pairs)
+    return s
+
+
+def match(run: Run, s: Extension) -> Extension:
+    """The new pairs matched into OUT's match file."""
+    match_features(s.features, s.pairs_file, s.matches, s.config.matching, num_threads=run.num_threads,
+                   progress=run.progress, executor=run.executor)
+    return s
+
+
+def refine(run: Run, s: Extension) -> Extension:
+    """The refined keypoints, staged: the earlier photos' as OUT's refined file has them, the new ones refined."""
+    anchor = run.out / record.refined_name(s.config.file_names[0])
+    s.keypoints = refine_keypoints(s.features, s.matches, s.pairs, s.image_dir, s.stage / REFINED, s.config.refine,
+                                   progress=run.progress, anchor=anchor)
+    s.entry["refine"] = refine_summary(s.keypoints)
+    return s
+
+
+def database(run: Run, s: Extension) -> Extension:
+    """A staged copy of OUT's database with the new photos and their pairs' matches; COLMAP's log goes to ``LOG``
+    from here to the model check."""
+    s.log_context = run.hold(ExitStack())  # closed by the model check, or by the run when a step fails before
+    s.log = s.log_context.enter_context(colmap_log(run.out / LOG))
+    s.database = s.stage / record.DATABASE
+    s.keypoints = s.keypoints or s.features
+    copy_database(run.out / record.DATABASE, s.database)
+    add_to_database(s.database, s.image_dir, s.keypoints, s.matches, s.pairs, s.added, s.config.camera)
+    return s
+
+
+def verification(run: Run, s: Extension) -> Extension:
+    """Geometric verification of the new pairs only (``verify_new_pairs``)."""
+    verify_new_pairs(s.database, s.pairs, two_view_options(s.config.verification, s.config.seed),
+                     run.num_threads or -1)
+    return s
+
+
+def match_report(run: Run, s: Extension) -> Extension:
+    """The mapper's options (``extension_options``) and the verified matches' statistics."""
+    s.mapper = extension_options(s.config, s.options.refine, s.database, s.known)
+    s.match_stats = match_statistics(s.database, int(s.mapper.min_num_matches))
+    return s
+
+
+def mapping(run: Run, s: Extension) -> Extension:
+    """The incremental mapper, continuing from OUT's model (filtered after mapping when the model was)."""
+    filtered: list = []
+    s.models = run_mapper(s.database, s.image_dir, s.mapper, run.progress, log_prefix=log_prefix(s.log),
+                          input_model=run.out / record.MODEL, final_filter=s.config.final_filter, records=filtered)
+    s.entry["final_filter"] = filtered[0] if filtered else None
+    return s
+
+
+def check_model(run: Run, s: Extension) -> Extension:
+    """The extended model checked (``_checked_model``) and staged with the database; which new photos registered."""
+    s.log_context.close()  # COLMAP's log is complete: the database can settle
+    settle_database(s.database)
+    s.model = _checked_model(s.models, run.out, s.options.refine)
+    stage_model(s.model, s.stage)
+    names = set(registered_names(s.model))
+    s.entry["registered"] = [n for n in s.added if n in names]
+    s.entry["unregistered"] = unregistered_report([n for n in s.added if n not in names], s.match_stats)
+    s.entry["mapper"] = {"type": "incremental, continuing from model/", "fix_existing_frames":
+                         bool(s.mapper.fix_existing_frames), "constant_cameras": sorted(s.mapper.constant_cameras),
+                         "ba_refine_principal_point": bool(s.mapper.ba_refine_principal_point)}
+    return s
+
+
+def stage_record(run: Run, s: Extension) -> Extension:
+    """OUT's record of the extended model, staged: the extension's entry (with the timed steps' seconds) appended,
+    the model's counts, matches and unregistered photos updated."""
+    s.entry["timings_s"] = run.timings()
+    stats = s.earlier.data
+    stats.setdefault("extensions", []).append(s.entry)
+    names = set(registered_names(s.model))
+    stats["model"], stats["output"] = model_stats(s.model), str(run.out / record.MODEL)
+    stats["matches"] = summarize_matches(s.match_stats)
+    if stats.get("models"):
+        stats["models"][0] = {**stats["models"][0], **model_stats(s.model), "images": sorted(names)}
+    in_a_model = names | {n for m in stats.get("models", [])[1:] for n in m.get("images", [])}
+    stats["unregistered"] = unregistered_report(sorted(set(s.match_stats["images"]) - in_a_model), s.match_stats)
+    record.write_record(stats, s.stage)
+    return s
+
+
+def commit_stage(run: Run, s: Extension) -> Extension:
+    """The staged files made OUT's (``extend_commit``: journal, then commit)."""
+    write_journal(s.stage, run.out, s.config.file_names[0])
+    commit(run.out)
+    timings = s.entry["timings_s"]
     logger.info("%s: %d of %d new photo(s) registered in %.1f s (%s); the summary below is the model's, the "
-                "extension's record is stats.json extensions[-1]", out, len(record["registered"]), len(record["added"]),
-                record["timings_s"]["total"], ", ".join(f"{k} {v:.1f}s" for k, v in record["timings_s"].items()
-                                                         if k != "total"))
-    return out / MAIN_MODEL
+                "extension's record is %s extensions[-1]", run.out, len(s.entry["registered"]), len(s.added),
+                timings["total"], ", ".join(f"{k} {v:.1f}s" for k, v in timings.items() if k != "total"), record.STATS)
+    return s
 
 
-def _stage(image_dir: Path, out: Path, stage: Path, config: _Recorded, options: ExtendOptions, settings: Any,
-           known: list[str], new: list[str], timer: StageTimer, record: dict) -> dict:
-    """Every staged file of the extension in ``stage``; returns what the stats need."""
-    features, matches = out / config.file_names[0], out / config.file_names[1]
-    with execution.using(settings.executor, settings.ray_options) as executor:
-        with timer("extract"):
-            extract_features(image_dir, features, config.features, num_threads=settings.num_threads,
-                             progress=settings.progress, executor=executor,
-                             masks=Path(config.masks) if config.masks else None)
-        extracted = set(ff.list_keys(features))
-        added = [name for name in new if name in extracted]  # unreadable photos are skipped with a warning
-        record["added"] = added
-        if not added:
-            raise SekdError(f"{image_dir}: none of the {len(new)} new photo(s) could be read (e.g. {new[0]}); "
-                            "nothing was added")
-        _check_features(features, out / "database.db", known)
-        with timer("pairs"):
-            pairs = new_pairs(features, known, added, config.pairs, settings.progress)
-            pairs_file = write_pairs(pairs, stage / "pairs-new.txt")
-        with timer("match"):
-            match_features(features, pairs_file, matches, config.matching, num_threads=settings.num_threads,
-                           progress=settings.progress, executor=executor)
-    record["pairs"] = len(pairs)
-    keypoints = features
-    if config.refine.enabled:
-        with timer("refine"):
-            keypoints = refine_keypoints(features, matches, pairs, image_dir, stage / "refined.h5", config.refine,
-                                         progress=settings.progress, anchor=refined_path(out, config.file_names[0]))
-        record["refine"] = refine_summary(keypoints)
-    database = stage / "database.db"
-    with colmap_log(out / "colmap-extend.log") as log:
-        with timer("database"):
-            copy_database(out / "database.db", database)
-            add_to_database(database, image_dir, keypoints, matches, pairs, added, config.camera)
-        with timer("verification"):
-            verify_new_pairs(database, pairs, two_view_options(config.verification, config.seed),
-                             settings.num_threads or -1)
-        mapper = extension_options(config, options.refine, database, known)
-        match_stats = match_statistics(database, int(mapper.min_num_matches))
-        with timer("mapping"):
-            filtered: list = []
-            models = run_mapper(database, image_dir, mapper, settings.progress, log_prefix=log_prefix(log),
-                                input_model=out / MAIN_MODEL, final_filter=config.final_filter, records=filtered)
-            record["final_filter"] = filtered[0] if filtered else None
-    settle_database(database)
-    model = _checked_model(models, out, options.refine)
-    (stage / "model.tmp").mkdir()
-    model.write_binary(str(stage / "model.tmp"))
-    _fsync_tree(stage / "model.tmp")
-    os.rename(stage / "model.tmp", stage / MAIN_MODEL)
-    names = set(registered_names(model))
-    record["registered"] = [n for n in added if n in names]
-    record["unregistered"] = unregistered_report([n for n in added if n not in names], match_stats)
-    record["mapper"] = {"type": "incremental, continuing from model/", "fix_existing_frames":
-                        bool(mapper.fix_existing_frames), "constant_cameras": sorted(mapper.constant_cameras),
-                        "ba_refine_principal_point": bool(mapper.ba_refine_principal_point)}
-    return {"model": model, "match_stats": match_stats, "pairs": pairs,
-            "refined": config.refine.enabled, "features_name": config.file_names[0]}
+#: ``sekd reconstruct --extend``, step by step (untimed steps are checks and bookkeeping, not stages of the entry's
+#: timings).
+EXTEND: tuple[Step, ...] = (
+    Step("stage", open_stage, timed=False),
+    Step("extract", extract),
+    Step("new photos", check_added, timed=False),
+    Step("pairs", pairs),
+    Step("match", match),
+    Step("refine", refine, when=lambda s: s.config.refine.enabled),
+    Step("database", database),
+    Step("verification", verification),
+    Step("match report", match_report, timed=False),
+    Step("mapping", mapping),
+    Step("model check", check_model, timed=False),
+    Step("record", stage_record, timed=False),
+    Step("commit", commit_stage, timed=False),
+)
 
 
 def verify_new_pairs(database: Path, pairs: list, options, num_threads: int) -> None:
@@ -407,7 +467,8 @@ def new_pairs(features: Path, known: list[str], new: list[str], config: PairsCon
     return unique_pairs(p for p in generate_pairs(names, config, features, progress) if p[0] in chosen or p[1] in chosen)
 
 
-def extension_options(config: _Recorded, refine: bool, database: Path, known: list[str]):
+def extension_options(config: ReconstructConfig, refine: bool, database: Path,
+                      known: list[str]) -> pycolmap.IncrementalPipelineOptions:
     """The incremental mapper's options of the extension: the record's mapper options that it has, existing
     frames and cameras fixed (unless ``refine``), one model (new photos register into OUT's or not at all)."""
     options = default_options("incremental", config.seed)
@@ -430,7 +491,7 @@ def extension_options(config: _Recorded, refine: bool, database: Path, known: li
 def _checked_model(models: list, out: Path, refine: bool):
     """The extended model; SekdError (nothing committed) if it lost an earlier photo or moved one while fixed."""
     pycolmap = require_pycolmap()
-    before = pycolmap.Reconstruction(str(out / MAIN_MODEL))
+    before = pycolmap.Reconstruction(str(out / record.MODEL))
     if not models:
         raise SekdError(f"{out}: the mapper returned no model from the existing one; nothing was changed")
     model = models[0]
@@ -500,105 +561,3 @@ def pose_matrix(image) -> np.ndarray:
     """An image's cam_from_world as a 3 x 4 float64 matrix (pycolmap 4: a method; 3.x: a property)."""
     pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
     return np.asarray(pose.matrix(), dtype=np.float64)
-
-
-def _stage_stats(stats: dict, staged: dict, stage: Path) -> None:
-    """stats.json, pairs.txt of the extended OUT, staged in ``stage``."""
-    model, match_stats = staged["model"], staged["match_stats"]
-    names = set(registered_names(model))
-    stats["model"], stats["output"] = model_stats(model), str(stage.parent / MAIN_MODEL)
-    stats["matches"] = summarize_matches(match_stats)
-    if stats.get("models"):
-        stats["models"][0] = {**stats["models"][0], **model_stats(model), "images": sorted(names)}
-    in_a_model = names | {n for m in stats.get("models", [])[1:] for n in m.get("images", [])}
-    stats["unregistered"] = unregistered_report(sorted(set(match_stats["images"]) - in_a_model), match_stats)
-    write_json(stats, stage / "stats.json")
-
-
-def _write_journal(stage: Path, out: Path) -> None:
-    """The commit's plan, written once every staged file is complete: after it, the extension only rolls forward."""
-    pairs = read_pairs(out / "pairs.txt") if (out / "pairs.txt").is_file() else []
-    write_pairs(unique_pairs([*pairs, *read_pairs(stage / "pairs-new.txt")]), stage / "pairs.txt")
-    stats = json.loads((stage / "stats.json").read_text())
-    refined = (stage / "refined.h5").is_file()
-    moves = [["database.db", "database.db"], ["pairs.txt", "pairs.txt"], ["stats.json", "stats.json"]]
-    if refined:
-        moves.append(["refined.h5", refined_path(out, stats["config"]["file_names"][0]).name])
-    journal = {"model_inode": (stage / MAIN_MODEL).stat().st_ino, "moves": moves}
-    for name in ("database.db", "refined.h5", "pairs.txt", "stats.json"):
-        if (stage / name).is_file():
-            _fsync(stage / name)
-    write_json(journal, stage / JOURNAL)
-    _fsync(stage / JOURNAL)
-    _fsync(stage)
-
-
-def commit(out: Path) -> None:
-    """Carry out (or finish) the journal's commit; every step can be repeated after a kill."""
-    stage = out / STAGE
-    journal = json.loads((stage / JOURNAL).read_text())
-    model, staged = out / MAIN_MODEL, stage / MAIN_MODEL
-    new_in_place = model.is_dir() and model.stat().st_ino == journal["model_inode"]
-    if not new_in_place and not (model.is_dir() and staged.is_dir() and _exchange(staged, model)):
-        _swap_by_renames(model, staged, out / BACKUP)
-    if staged.is_dir():  # the earlier model, after the exchange
-        shutil.rmtree(out / BACKUP, ignore_errors=True)
-        os.rename(staged, out / BACKUP)
-    for source, target in journal["moves"]:
-        if (stage / source).is_file():
-            _drop_sqlite_sidecars(out / target)  # the earlier file's (read-only opens leave them)
-            os.replace(stage / source, out / target)
-    _drop_sqlite_sidecars(out / "database.db")
-    _fsync(out)
-    shutil.rmtree(out / BACKUP, ignore_errors=True)  # the new model is complete: the backup can go
-    (stage / JOURNAL).unlink()
-    shutil.rmtree(stage, ignore_errors=True)
-
-
-def _drop_sqlite_sidecars(path: Path) -> None:
-    """Remove ``path``'s SQLite -wal/-shm files: once the staged database (settled, no log of its own) replaces
-    ``path`` they belong to the earlier file, which nothing uses any more, and must not be applied to the new one."""
-    if path.name.endswith(".db"):
-        for suffix in ("-wal", "-shm"):
-            path.with_name(path.name + suffix).unlink(missing_ok=True)
-
-
-def _swap_by_renames(model: Path, staged: Path, backup: Path) -> None:
-    """Where directories cannot be exchanged atomically: model -> backup, staged -> model (a kill in between
-    leaves the earlier model in ``backup`` and the new one staged; the next run finishes the swap)."""
-    if model.is_dir():
-        shutil.rmtree(backup, ignore_errors=True)
-        os.rename(model, backup)
-    os.rename(staged, model)
-
-
-_RENAME_EXCHANGE = 2
-_AT_FDCWD = -100
-
-
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap two directories in one step (Linux renameat2 RENAME_EXCHANGE); False where unsupported."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        renameat2 = libc.renameat2
-    except (OSError, AttributeError):
-        return False
-    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
-    if renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
-        return True
-    logger.info("renameat2 exchange unavailable (errno %d): two renames instead", ctypes.get_errno())
-    return False
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_tree(folder: Path) -> None:
-    for path in folder.iterdir():
-        _fsync(path)
-    _fsync(folder)

@@ -15,7 +15,7 @@ else a vocabulary and global descriptors of the reference are made in the work f
 Camera of a query, first that applies: ``camera_params`` (COLMAP convention, ``camera_model``); the
 reference's calibrated camera when the query has the same ``database.camera_key`` (size and EXIF
 make, model, focal length) as a registered photo of that camera (read from the photo folder
-recorded in OUT/stats.json); else a prior, SIMPLE_RADIAL-like model of the reference's
+recorded in OUT's record); else a prior, SIMPLE_RADIAL-like model of the reference's
 ``config.camera.model``, focal length from EXIF's 35 mm equivalent (``f35 / 36 * max(w, h)``) or
 ``1.2 * max(w, h)`` (COLMAP's default prior), with the focal length estimated (P4Pf) and refined.
 
@@ -31,7 +31,8 @@ Files written (``-o results.txt``; nothing is ever written into OUT)::
 
 Resumable: queries localized in an earlier run with the same configuration and reference are
 kept, not recomputed (failed ones are tried again). A query that fails (unreadable photo, too
-few matches or inliers) is logged with its reason; the others go on.
+few matches or inliers) is logged with its reason; the others go on. ``LOCALIZE`` lists the
+run's steps, each ``step(run, state) -> state`` over a ``Localization`` (``run.py``).
 """
 from __future__ import annotations
 
@@ -51,25 +52,21 @@ from tqdm import tqdm
 
 from ..errors import SekdError
 from ..execution import RayOptions
-from ..stages.extract import extract_features
 from ..features import FeatureConfig
 from ..files import features as ff
 from ..files.atomic import write_atomic
 from ..files.images import ImageReadError, list_images, read_image
 from ..files.locking import writer_lock
 from ..files.poses import pose_line
-from ..stages.match import MatchConfig, describe_config, match_descriptors
-from ..model.inference import SEKDConfig
-from ..stages.retrieval import (
-    RetrievalConfig,
-    compute_global_descriptors,
-    global_path,
-    query_neighbors,
-)
 from ..runtime import package_versions
 from ..stages.colmap import require_pycolmap
 from ..stages.database import COLMAP_PIXEL_OFFSET, camera_key, parse_camera_params
-from ..stages.export_nerfstudio import recorded_folder
+from ..stages.extract import extract_features
+from ..stages.match import describe_config, match_descriptors
+from ..stages.retrieval import compute_global_descriptors, global_path, query_neighbors
+from .config import ReconstructConfig
+from .record import MODEL, Record
+from .run import Run, RunOptions, Step, run_steps
 
 logger = logging.getLogger("sekd")
 #: Reference images retrieved per query (hloc's localization pipelines use 10 to 50 with NetVLAD).
@@ -105,7 +102,7 @@ class Reference:
     """A ``sekd reconstruct`` output, read only: its model, feature file and the settings it was made with."""
 
     folder: Path
-    stats: dict
+    record: Record
     features: Path
     model: Any  # pycolmap.Reconstruction
     ids: dict[str, int]  # registered image name -> image id
@@ -114,8 +111,24 @@ class Reference:
     point3D_ids: dict[str, np.ndarray] = field(default_factory=dict)  # per image: N (keypoints) int64, -1 = none
 
     @property
+    def stats(self) -> dict:
+        """The record as written."""
+        return self.record.data
+
+    @property
     def config(self) -> dict:
-        return self.stats["config"]
+        """The recorded configuration (JSON types; ``settings`` types it)."""
+        return self.record.config_data
+
+    @property
+    def settings(self) -> ReconstructConfig:
+        """The configuration the reference was made with, typed (a new object on every call)."""
+        return self.record.config()
+
+    @property
+    def camera_model(self) -> str:
+        """The reference's camera model (``config.camera.model``)."""
+        return self.settings.camera.model or "SIMPLE_RADIAL"
 
     def observed(self, name: str) -> np.ndarray:
         """The model's 3D point id of each keypoint of reference image ``name`` (N int64, -1 where none)."""
@@ -134,12 +147,13 @@ def load_reference(folder: str | Path) -> Reference:
     folder = Path(folder)
     if not folder.is_dir():
         raise SekdError(f"{folder}: no such folder; give --reference the output folder of `sekd reconstruct`")
-    stats = _read_stats(folder)
-    model_dir = folder / "model"
+    record = Record.from_record(folder, option="--reference")  # SekdError (one sentence) when it is no `sekd reconstruct` output
+    model_dir = folder / MODEL
     if not (model_dir / "images.bin").is_file() and not (model_dir / "images.txt").is_file():
-        raise SekdError(f"{folder}: has no model (model/ missing; the reconstruction {stats.get('status', 'failed')}); "
-                        "localize against a folder where `sekd reconstruct` succeeded")
-    features = _reference_features(folder, stats)
+        raise SekdError(f"{folder}: has no model (model/ missing; the reconstruction "
+                        f"{record.data.get('status', 'failed')}); localize against a folder where `sekd reconstruct` "
+                        "succeeded")
+    features = _reference_features(record)
     try:
         model = pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # noqa: BLE001 - pycolmap raises bare RuntimeErrors for torn files
@@ -148,28 +162,12 @@ def load_reference(folder: str | Path) -> Reference:
     if not ids:
         raise SekdError(f"{model_dir}: the model has no registered image; nothing to localize against")
     _check_keypoints(features, model, ids)
-    images_dir = recorded_folder(str(stats["images_dir"]), folder, stats) if stats.get("images_dir") else None
-    return Reference(folder, stats, features, model, ids, images_dir, _fingerprint(model_dir))
+    return Reference(folder, record, features, model, ids, record.photo_folder(), _fingerprint(model_dir))
 
 
-def _read_stats(folder: Path) -> dict:
-    path = folder / "stats.json"
-    try:
-        stats = json.loads(path.read_text())
-    except (OSError, ValueError):
-        raise SekdError(f"{folder}: not an output folder of `sekd reconstruct` (no readable stats.json); "
-                        "give --reference the folder `sekd reconstruct PHOTOS -o OUT` wrote") from None
-    if not isinstance(stats, dict) or not isinstance(stats.get("config"), dict) or "features" not in stats["config"]:
-        raise SekdError(f"{path}: not the stats.json of `sekd reconstruct` (no config.features); "
-                        "give --reference the folder `sekd reconstruct` wrote")
-    return stats
-
-
-def _reference_features(folder: Path, stats: dict) -> Path:
+def _reference_features(record: Record) -> Path:
     """The feature file the model's keypoints index: the one given to reconstruct (``inputs.features``) or made in OUT."""
-    given = (stats.get("inputs") or {}).get("features")
-    names = stats["config"].get("file_names") or ["features.h5"]
-    path = Path(given) if given else folder / names[0]
+    path = record.features
     if not path.is_file():
         raise SekdError(f"{path}: the reference's feature file is missing (the model alone cannot be matched); "
                         "localize against a complete `sekd reconstruct` output")
@@ -199,23 +197,19 @@ def _fingerprint(model_dir: Path) -> str:
 
 
 def feature_config(reference: Reference, weights: str | None = None) -> FeatureConfig:
-    """The reference's extraction settings (OUT/stats.json ``config.features``); ``weights``: its SEKD checkpoint."""
-    recorded = dict(reference.config["features"])
-    sekd = SEKDConfig(**{k: v for k, v in (recorded.pop("sekd", None) or {}).items()
-                         if k in SEKDConfig.__dataclass_fields__})
-    known = {k: v for k, v in recorded.items() if k in FeatureConfig.__dataclass_fields__ and k != "weights"}
-    return FeatureConfig(**known, sekd=sekd, weights=weights)
+    """The reference's extraction settings (its record's ``config.features``, typed; a new object on every call);
+    ``weights``: its SEKD checkpoint."""
+    return reference.record.config(weights).features
 
 
 def matching_config(reference: Reference) -> dict:
     """The reference's matching (mode, ratio, metric, rootsift) as its match file recorded it, defaults resolved."""
-    recorded = reference.stats.get("matching") or {}
+    recorded = reference.record.matching
     if {"mode", "ratio", "rootsift"} <= set(recorded):
         return recorded
     attrs = ff.read_attrs(reference.features)
-    config = reference.config.get("matching") or {}
-    known = {k: v for k, v in config.items() if k in MatchConfig.__dataclass_fields__}
-    return describe_config(MatchConfig(**known), str(attrs["feature_type"]), str(attrs["descriptor_dtype"]) == "uint8")
+    return describe_config(reference.settings.matching, str(attrs["feature_type"]),
+                           str(attrs["descriptor_dtype"]) == "uint8")
 
 
 # ----------------------------------------------------------------------------- queries
@@ -282,8 +276,8 @@ def retrieve(reference: Reference, query_features: Path, names: list[str], confi
     if not stored.is_file():
         if len(registered) <= 2 * k + 1:
             return {n: list(registered) for n in present}, "all registered images (no global file, <= 2K+1 images)"
-        retrieval = RetrievalConfig(**(reference.config.get("pairs") or {}).get("retrieval", {}))
-        stored = compute_global_descriptors(reference.features, retrieval, work / "reference.global.h5", progress)
+        stored = compute_global_descriptors(reference.features, reference.settings.pairs.retrieval,
+                                            work / "reference.global.h5", progress)
         rule = f"global descriptors learned in {stored}"
     else:
         rule = f"reference global descriptors {stored}"
@@ -328,7 +322,7 @@ def query_camera(reference: Reference, photo: Path, size: tuple[int, int], confi
     """The camera of a query photo (module docstring): ``(pycolmap.Camera, where it comes from, estimate focal)``."""
     pycolmap = require_pycolmap()
     width, height = size
-    model = config.camera_model or (reference.config.get("camera") or {}).get("model") or "SIMPLE_RADIAL"
+    model = config.camera_model or reference.camera_model
     if config.camera_params:
         params = parse_camera_params(model, config.camera_params, width, height)
         camera = pycolmap.Camera.create_from_model_name(0, model, 1.0, width, height)
@@ -387,17 +381,50 @@ def estimate_pose(points2D: np.ndarray, points3D: np.ndarray, camera, estimate_f
 
 # ----------------------------------------------------------------------------- the run
 
+@dataclass
+class Localization:
+    """What the steps of ``LOCALIZE`` have made so far, and the log they fill (``log``: the results of an earlier run
+    with the same ``identity`` resumed, else new).
+
+    ``image_dir`` / ``names``: the folder the queries are extracted from and their names; ``features``: their
+    feature file in the work folder; ``todo``: the queries not localized yet; ``neighbours``: the reference images
+    retrieved for each of them, best first.
+    """
+
+    queries: str | Path
+    reference: Reference
+    output: Path
+    config: LocalizeConfig
+    features_config: FeatureConfig
+    identity: dict = field(default_factory=dict)
+    log: dict = field(default_factory=dict)
+    image_dir: Path | None = None
+    names: list[str] = field(default_factory=list)
+    features: Path | None = None
+    matching: dict = field(default_factory=dict)
+    todo: list[str] = field(default_factory=list)
+    neighbours: dict[str, list[str]] = field(default_factory=dict)
+
+    @property
+    def work(self) -> Path:
+        return work_folder(self.output)
+
+
 def localize(queries: str | Path, reference: str | Path, output: str | Path, config: LocalizeConfig | None = None, *,
              weights: str | None = None, overwrite: bool = False, num_threads: int | None = None,
-             progress: bool = True, executor: str = "local", ray_options: RayOptions | None = None) -> Path:
+             progress: bool = True, executor: str = "local", ray_options: RayOptions | None = None,
+             options: RunOptions | None = None) -> Path:
     """Localize the photos of ``queries`` (folder or list file) against the reconstruction folder ``reference``.
 
     Writes ``output`` (hloc poses), its log and work folder (module docstring); returns ``output``.
     ``weights``: the reference's SEKD checkpoint when it was not the default model. SekdError for
     a reference that is not a usable sekd output, or an output made with other settings (unless
-    ``overwrite``). ``executor``/``ray_options``: where the queries' extraction runs.
+    ``overwrite``). How the run runs: ``options`` (a RunOptions), or its fields ``overwrite``, ``num_threads``,
+    ``progress``, ``executor`` and ``ray_options`` as keywords (the executor: where the queries' extraction runs).
     """
     config = config or LocalizeConfig()
+    options = options or RunOptions(overwrite=overwrite, num_threads=num_threads, progress=progress,
+                                    executor=executor, ray_options=ray_options)
     if config.num_neighbors < 1:
         raise SekdError(f"--num-neighbors {config.num_neighbors}: retrieve at least 1 reference image per query")
     output = Path(output)
@@ -406,10 +433,13 @@ def localize(queries: str | Path, reference: str | Path, output: str | Path, con
         raise SekdError(f"{output}: inside the reference folder {ref.folder}, which localize never writes into; "
                         "choose an output elsewhere")
     if config.camera_params:
-        parse_camera_params(config.camera_model or ref.config.get("camera", {}).get("model", "SIMPLE_RADIAL"),
-                            config.camera_params)
-    with writer_lock(output, "localization results file"):
-        return _locked(queries, ref, output, config, weights, overwrite, num_threads, progress, executor, ray_options)
+        parse_camera_params(config.camera_model or ref.camera_model, config.camera_params)
+    state = Localization(queries, ref, output, config, feature_config(ref, weights))
+    # One writer per results file (its own lock beside it: OUTPUT is a file, not a run folder); the run's
+    # executor, open from the queries' extraction to the end, works in the work folder.
+    with writer_lock(output, "localization results file"), Run(work_folder(output), options) as run:
+        run_steps(run, LOCALIZE, state)
+    return output
 
 
 def _identity(ref: Reference, config: LocalizeConfig, features: dict) -> dict:
@@ -418,36 +448,70 @@ def _identity(ref: Reference, config: LocalizeConfig, features: dict) -> dict:
             "localize": asdict(config), "features": features}
 
 
-def _locked(queries, ref: Reference, output: Path, config: LocalizeConfig, weights, overwrite: bool,
-            num_threads, progress: bool, executor: str, ray_options) -> Path:
-    work = work_folder(output)
-    work.mkdir(parents=True, exist_ok=True)
-    fconfig = feature_config(ref, weights)
-    identity = _identity(ref, config, {k: v for k, v in asdict(fconfig).items() if k != "weights"})
-    log = _previous_log(output, identity, overwrite)
-    image_dir, names = query_images(queries, work)
-    features = extract_features(image_dir, work / "features.h5", fconfig, overwrite=overwrite, num_threads=num_threads,
-                                progress=progress, executor=executor, ray_options=ray_options)
-    _check_same_features(features, ref.features)
-    matching = matching_config(ref)
-    log.update({"identity": identity, "queries_source": str(queries), "matching": matching,
-                "versions": package_versions(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
-    records = log.setdefault("queries", {})
-    todo = [n for n in names if (records.get(n) or {}).get("status") != "localized"]
-    neighbours: dict[str, list[str]] = {}
-    if todo:
-        neighbours, log["retrieval"] = retrieve(ref, features, todo, config, work, progress)
-    state = {"cache": {}, "keys": {}, "saved": time.monotonic()}
-    for name in tqdm(todo, desc="localize", unit="query", disable=not progress or not todo):
-        records[name] = _localize_one(ref, image_dir, features, name, neighbours.get(name), matching, config, state)
-        if time.monotonic() - state["saved"] > CHECKPOINT_SECONDS:
-            _save(output, log, names)
-            state["saved"] = time.monotonic()
-    _save(output, log, names)
-    summary = log["summary"]
-    logger.info("%s: %d of %d queries localized (%d failed)", output, summary["localized"], summary["queries"],
+# ----------------------------------------------------------------------------- the steps, in order
+
+def resume(run: Run, s: Localization) -> Localization:
+    """The work folder, the log of an earlier run to resume (SekdError when made with other settings), the queries."""
+    s.work.mkdir(parents=True, exist_ok=True)
+    s.identity = _identity(s.reference, s.config,
+                           {k: v for k, v in asdict(s.features_config).items() if k != "weights"})
+    s.log = _previous_log(s.output, s.identity, run.options.overwrite)
+    s.image_dir, s.names = query_images(s.queries, s.work)
+    return s
+
+
+def extract(run: Run, s: Localization) -> Localization:
+    """The queries' features (made or resumed in the work folder) with the reference's settings, checked against
+    the reference's."""
+    s.features = extract_features(s.image_dir, s.work / "features.h5", s.features_config,
+                                  overwrite=run.options.overwrite, num_threads=run.num_threads, progress=run.progress,
+                                  executor=run.executor)
+    _check_same_features(s.features, s.reference.features)
+    return s
+
+
+def plan(run: Run, s: Localization) -> Localization:
+    """The log's settings, and the queries still to localize (those an earlier run localized are kept)."""
+    s.matching = matching_config(s.reference)
+    s.log.update({"identity": s.identity, "queries_source": str(s.queries), "matching": s.matching,
+                  "versions": package_versions(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+    records = s.log.setdefault("queries", {})
+    s.todo = [n for n in s.names if (records.get(n) or {}).get("status") != "localized"]
+    return s
+
+
+def retrieval(run: Run, s: Localization) -> Localization:
+    """The reference images to match with each query to localize (``retrieve``)."""
+    s.neighbours, s.log["retrieval"] = retrieve(s.reference, s.features, s.todo, s.config, s.work, run.progress)
+    return s
+
+
+def localize_queries(run: Run, s: Localization) -> Localization:
+    """Each query localized in turn (``_localize_one``), the results saved every CHECKPOINT_SECONDS and at the end."""
+    records = s.log["queries"]
+    caches = {"cache": {}, "keys": {}}
+    saved = time.monotonic()
+    for name in tqdm(s.todo, desc="localize", unit="query", disable=not run.progress or not s.todo):
+        records[name] = _localize_one(s.reference, s.image_dir, s.features, name, s.neighbours.get(name), s.matching,
+                                      s.config, caches)
+        if time.monotonic() - saved > CHECKPOINT_SECONDS:
+            _save(s.output, s.log, s.names)
+            saved = time.monotonic()
+    _save(s.output, s.log, s.names)
+    summary = s.log["summary"]
+    logger.info("%s: %d of %d queries localized (%d failed)", s.output, summary["localized"], summary["queries"],
                 summary["failed"])
-    return output
+    return s
+
+
+#: ``sekd localize``, step by step (untimed steps are checks and bookkeeping).
+LOCALIZE: tuple[Step, ...] = (
+    Step("queries", resume, timed=False),
+    Step("extract", extract),
+    Step("plan", plan, timed=False),
+    Step("retrieve", retrieval, when=lambda s: bool(s.todo)),
+    Step("localize", localize_queries),
+)
 
 
 def _previous_log(output: Path, identity: dict, overwrite: bool) -> dict:
@@ -491,8 +555,9 @@ def _without_precision(config: Any) -> Any:
 
 
 def _localize_one(ref: Reference, image_dir: Path, features: Path, name: str, retrieved: list[str] | None,
-                  matching: dict, config: LocalizeConfig, state: dict) -> dict:
-    """One query's record for the log: localized with its pose, or failed with the reason."""
+                  matching: dict, config: LocalizeConfig, caches: dict) -> dict:
+    """One query's record for the log: localized with its pose, or failed with the reason. ``caches``: the reference
+    descriptors (``cache``) and camera keys (``keys``) read so far, kept from one query to the next."""
     start = time.perf_counter()
     record: dict[str, Any] = {"status": "failed", "reason": None}
     try:
@@ -501,10 +566,10 @@ def _localize_one(ref: Reference, image_dir: Path, features: Path, name: str, re
             return record
         query = ff.read_features(features, name)
         record["retrieved"] = retrieved
-        points2D, points3D, record["matches"] = correspondences(ref, query, retrieved, matching, state["cache"])
+        points2D, points3D, record["matches"] = correspondences(ref, query, retrieved, matching, caches["cache"])
         record["correspondences"] = len(points2D)
         size = tuple(int(v) for v in query["image_size"])
-        camera, record["camera_source"], estimate_focal = query_camera(ref, image_dir / name, size, config, state["keys"])
+        camera, record["camera_source"], estimate_focal = query_camera(ref, image_dir / name, size, config, caches["keys"])
         if len(points2D) < max(config.min_inliers, 6):
             record["reason"] = (f"{len(points2D)} 2D-3D correspondences (fewer than {max(config.min_inliers, 6)}): "
                                 "the photo shares too little with the reference images retrieved")

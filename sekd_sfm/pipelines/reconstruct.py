@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,7 +43,7 @@ from ..stages.mapping import (
     write_models,
 )
 from ..stages.match import match_features
-from ..stages.pairs import PairsConfig, make_pairs, read_pairs, write_pairs
+from ..stages.pairs import make_pairs, read_pairs, write_pairs
 from ..stages.principal_point import PrincipalPointPlan, plan_principal_point
 from ..stages.refine import refine_keypoints, refine_summary
 from . import record
@@ -98,7 +99,7 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
                 overwrite: bool = False, num_threads: int | None = None, progress: bool = True,
                 features: str | Path | None = None, matches: str | Path | None = None, executor: str = "local",
                 ray_options: RayOptions | None = None, extend: ExtendOptions | None = None,
-                options: RunOptions | None = None) -> Path:
+                options: RunOptions | None = None, steps: Sequence[Step] | None = None) -> Path:
     """Reconstruct the images below ``image_dir`` into ``output_dir``; returns the main model's folder.
 
     Runs the missing stages (extract, pairs, match) and reuses existing outputs made with
@@ -112,6 +113,8 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
     Raises ReconstructionError, after writing the record and keeping the database, when no
     model comes out; SekdError when another process is using ``output_dir``.
     ``extend``: add the photos ``output_dir``'s model lacks to it instead, with its recorded settings (extend.py).
+    ``steps``: the pipeline to run instead of ``RECONSTRUCT`` (e.g. with a step of your own inserted,
+    docs/architecture.md); each is ``step(run, state: Reconstruction) -> Reconstruction``.
     """
     require_pycolmap()
     config = config or ReconstructConfig()
@@ -128,7 +131,7 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
     with Run(out, options, lock="reconstruction folder") as run:
         clean_scratch(out)  # left by a killed run: nobody else can be using them while we hold the lock
         clean_logs(out / record.COLMAP_LOG)
-        return _recorded(run, state)
+        return _recorded(run, state, RECONSTRUCT if steps is None else steps)
 
 
 def _check_inputs(image_dir: Path, features: str | Path | None, matches: str | Path | None) -> None:
@@ -147,11 +150,11 @@ def _new_record(image_dir: Path, config: ReconstructConfig, features, matches) -
                                                      "matches": str(matches) if matches else None}}
 
 
-def _recorded(run: Run, state: Reconstruction) -> Path:
-    """``RECONSTRUCT`` over ``state``; the record says how it ended, success or a failure to explain."""
+def _recorded(run: Run, state: Reconstruction, steps: Sequence[Step]) -> Path:
+    """``steps`` over ``state``; the record says how it ended, success or a failure to explain."""
     stats = state.stats
     try:
-        state = run_steps(run, RECONSTRUCT, state)
+        state = run_steps(run, steps, state)
         stats["status"] = "ok"
         return state.model
     except ReconstructionError as exc:
@@ -227,7 +230,7 @@ def refine(run: Run, s: Reconstruction) -> Reconstruction:
     """The keypoints moved to where their matches agree (``stages.refine``)."""
     s.keypoints = refine_keypoints(s.features, s.matches, read_pairs(s.pairs), s.image_dir,
                                    run.out / record.refined_name(s.config.file_names[0]), s.config.refine,
-                                   progress=run.progress)
+                                   progress=run.progress, executor=run.executor)
     s.stats["refine"] = refine_summary(s.keypoints)
     return s
 

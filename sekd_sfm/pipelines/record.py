@@ -11,7 +11,9 @@ An output folder of ``sekd reconstruct`` (``--extend`` adds to it in place)::
 
 ``sekd triangulate`` writes the same names for the files it shares. Every other module learns
 about an earlier run through this one: ``Record.from_record(OUT)`` (the record, checked, with
-the typed configuration and the paths of its files), ``read_record`` / ``write_record``.
+the typed configuration and the paths of its files), ``read_record`` / ``write_record``; and
+``Record.of_model(MODEL)``: the record of the run that wrote a model, with the photo and mask
+folders it was given (``photo_folder``, ``masks_folder``; relative ones found from where it ran).
 """
 from __future__ import annotations
 
@@ -67,18 +69,19 @@ class Record:
     data: dict
 
     @classmethod
-    def from_record(cls, out: str | Path, *, needs: str = "config") -> Record:
-        """The record in ``out``; SekdError (one sentence) when there is none or it lacks the key ``needs``."""
-        out = Path(out)
+    def from_record(cls, out: str | Path, *, needs: str = "config", option: str = "") -> Record:
+        """The record in ``out``; SekdError (one sentence) when there is none or it lacks the key ``needs``.
+        ``option``: the command-line option that named ``out`` (``--reference``), for the message."""
+        out, give = Path(out), f"give {option} the folder" if option else "give the folder"
         data = read_record(out)
         if data is None:
             raise SekdError(f"{out}: not an output folder of `sekd reconstruct` (no readable {STATS}); "
-                            "give the folder `sekd reconstruct PHOTOS -o OUT` wrote")
+                            f"{give} `sekd reconstruct PHOTOS -o OUT` wrote")
         if needs == "config" and (not isinstance(data.get("config"), dict) or "features" not in data["config"]):
-            raise SekdError(f"{out / STATS}: not the record of `sekd reconstruct` (no config.features); "
-                            "give the folder `sekd reconstruct` wrote")
+            raise SekdError(f"{out / STATS}: not the {STATS} of `sekd reconstruct` (no config.features); "
+                            f"{give} `sekd reconstruct` wrote")
         if needs not in ("config", "") and needs not in data:
-            raise SekdError(f"{out / STATS}: not the record of `sekd reconstruct` (no {needs})")
+            raise SekdError(f"{out / STATS}: not the {STATS} of `sekd reconstruct` (no {needs})")
         return cls(out, data)
 
     @property
@@ -132,3 +135,52 @@ class Record:
     def matching(self) -> dict:
         """The match file's configuration as the run recorded it (defaults resolved), or {}."""
         return self.data.get("matching") or {}
+
+    @classmethod
+    def of_model(cls, model: str | Path) -> Record | None:
+        """The record of the run that wrote the model folder ``model`` (``OUT/model`` or ``OUT/models/<k>``): the
+        first readable record naming a photo folder, in the model's parent folder or the one above; None if none."""
+        model = Path(model)
+        for out in (model.parent, model.parent.parent):
+            data = read_record(out)
+            if data is not None and "images_dir" in data:
+                return cls(out, data)
+        return None
+
+    def folder(self, value: str) -> Path:
+        """A folder the record names, found from here (``recorded_folder``)."""
+        return recorded_folder(value, self.out, self.data)
+
+    def photo_folder(self) -> Path | None:
+        """The photo folder the run was given, found from here (``recorded_folder``); None when it recorded none."""
+        return self.folder(str(self.images_dir)) if self.images_dir else None
+
+    def masks_folder(self) -> Path | None:
+        """The mask folder the run was given (``config.masks``), found from here; None when it had no masks."""
+        return self.folder(self.masks) if self.masks else None
+
+
+def recorded_folder(value: str, out: Path, data: dict) -> Path:
+    """A folder named in the record ``data`` of the run in ``out``: absolute as is; relative, from where the run
+    ran, else from the current folder (the first of the two that exists)."""
+    path = Path(value)
+    if path.is_absolute():
+        return path
+    base = _run_directory(out, data)
+    candidates = ([base / path] if base is not None else []) + [path]
+    return next((c for c in candidates if c.is_dir()), candidates[0])
+
+
+def _run_directory(out: Path, data: dict) -> Path | None:
+    """The working folder the run in ``out`` ran in, from ``out`` and the model path it recorded (``output``,
+    relative to that folder): recorded folders that are relative are relative to it."""
+    recorded = Path(str(data.get("output", "")))
+    if recorded.is_absolute() or not recorded.parts:
+        return None
+    relative_out = recorded.parent.parts
+    out = Path(out).resolve()
+    if not relative_out:
+        return out
+    if ".." in relative_out or out.parts[-len(relative_out):] != relative_out:
+        return None
+    return out.parents[len(relative_out) - 1]

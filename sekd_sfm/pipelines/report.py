@@ -1,4 +1,4 @@
-"""Match statistics from the database, failure explanations, stats.json and the summary screen."""
+"""Match statistics from the database, failure explanations, the run's record and the summary screen."""
 from __future__ import annotations
 
 import time
@@ -9,6 +9,7 @@ import numpy as np
 
 from ..errors import SekdError
 from ..stages.colmap import open_database, require_pycolmap
+from .record import STATS
 
 
 class ReconstructionError(SekdError):
@@ -60,7 +61,7 @@ def _per_image(keypoints: dict[str, int], pairs: list, min_inliers: int) -> dict
 
 
 def summarize_matches(stats: dict) -> dict:
-    """Counts and medians of the match statistics (what stats.json records)."""
+    """Counts and medians of the match statistics (what the run's record keeps)."""
     raw = [p[2] for p in stats["pairs"]]
     inl = [p[3] for p in stats["pairs"]]
     keypoints = [v["keypoints"] for v in stats["images"].values()]
@@ -152,7 +153,7 @@ def unregistered_report(names: list[str], stats: dict) -> list[dict]:
 
 
 def format_summary(stats: dict) -> str:
-    """The one-screen summary of a stats.json dictionary."""
+    """The one-screen summary of a run's record (``record.STATS``, as a dictionary)."""
     lines = [f"reconstruction: {stats['status']}" + (f" ({stats['failure']})" if stats.get("failure") else "")]
     model = stats.get("model")
     if model:
@@ -179,7 +180,7 @@ def format_summary(stats: dict) -> str:
         lines.append(f"  not registered     {item['name']}: {item.get('keypoints', 0)} keypoints, "
                      f"{item.get('verified_pairs', 0)} verified pairs, best {item.get('best_inliers', 0)} inliers")
     if len(unregistered) > 5:
-        lines.append(f"  not registered     ... and {len(unregistered) - 5} more (listed in stats.json)")
+        lines.append(f"  not registered     ... and {len(unregistered) - 5} more (listed in {STATS})")
     timings = stats.get("timings_s", {})
     lines.append("  time               " + ", ".join(f"{k} {v:.1f}s" for k, v in timings.items()))
     if stats.get("output"):

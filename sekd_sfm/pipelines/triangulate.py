@@ -13,7 +13,9 @@ verification, and ``pycolmap.triangulate_points`` (COLMAP's point_triangulator: 
 track completion and merging, bundle adjustment of the points with every pose constant).
 COLMAP normalises each rotation quaternion in bundle adjustment; the given values (unchanged
 up to that normalisation, which is checked) are written back before the model is saved, so
-the model holds exactly the poses it was given.
+the model holds exactly the poses it was given. ``TRIANGULATE`` lists the steps; each is
+``step(run, state) -> state`` over a ``Triangulation`` (``run.py``), and the files they write are
+named in ``record.py``.
 
 Files in the output folder::
 
@@ -23,7 +25,7 @@ Files in the output folder::
     colmap.log                           COLMAP's log
     photos/                              links to the posed photos, only when PHOTOS holds others (extracted alone)
     model/                               COLMAP binary model: the given poses and intrinsics, the new points
-    stats.json                           points, track lengths, reprojection error, pairs, timings, configuration
+    record (``record.STATS``)            points, track lengths, reprojection error, pairs, timings, configuration
     .lock                                held for the run: a second run on the same folder is refused
 """
 from __future__ import annotations
@@ -32,24 +34,39 @@ import logging
 import os
 import shutil
 import tempfile
-import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
 
-from .. import execution
 from ..errors import SekdError
 from ..execution import RayOptions
-from ..stages.extract import extract_features
 from ..features import FeatureConfig
 from ..files import matches as mf
 from ..files.atomic import remove_folder
 from ..files.images import list_images
-from ..files.locking import exclusive_lock
 from ..files.poses import read_poses
+from ..runtime import package_versions
+from ..stages.colmap import (
+    clean_logs,
+    colmap_log,
+    open_database,
+    require_pycolmap,
+    set_options,
+)
+from ..stages.database import (
+    COLMAP_PIXEL_OFFSET,
+    camera_groups,
+    camera_key,
+    parse_camera_params,
+    two_view_options,
+    verify_matches,
+)
+from ..stages.export import model_folder, read_model
+from ..stages.extract import extract_features
 from ..stages.match import MatchConfig, match_features
 from ..stages.pairs import (
     Pair,
@@ -61,22 +78,10 @@ from ..stages.pairs import (
     warn_skipped,
     write_pairs,
 )
-from ..runtime import package_versions
-from ..stages.colmap import clean_logs, colmap_log, open_database, require_pycolmap, set_options
-from ..stages.database import (
-    COLMAP_PIXEL_OFFSET,
-    camera_groups,
-    camera_key,
-    parse_camera_params,
-    two_view_options,
-    verify_matches,
-)
-from ..stages.export import model_folder, read_model
-from ..stages.mapping import MAIN_MODEL
-from .config import DEFAULT_RESIZE_MAX
-from .record import refined_name
 from ..stages.refine import RefineConfig, refine_keypoints, refine_summary
-from ..files.atomic import write_json
+from . import record
+from .config import DEFAULT_FILE_NAMES, DEFAULT_RESIZE_MAX, config_dict
+from .run import Run, RunOptions, Step, run_steps
 
 logger = logging.getLogger("sekd")
 
@@ -112,7 +117,7 @@ class TriangulateConfig:
     verification: list[str] = field(default_factory=list)
     refine: RefineConfig = field(default_factory=RefineConfig)
     seed: int = 0
-    file_names: tuple[str, str] = ("features.h5", "matches.h5")
+    file_names: tuple[str, str] = DEFAULT_FILE_NAMES
 
 
 # ----------------------------------------------------------------------------- known poses
@@ -399,8 +404,8 @@ def triangulate_known(reference, database: Path, image_dir: Path, out: Path, opt
     shutil.rmtree(scratch)
     scratch.mkdir()
     result.write_binary(str(scratch))
-    remove_folder(out / MAIN_MODEL)
-    os.replace(scratch, out / MAIN_MODEL)
+    remove_folder(out / record.MODEL)
+    os.replace(scratch, out / record.MODEL)
     return result
 
 
@@ -446,96 +451,146 @@ def _make_pairs(config: TriangulateConfig, model, reference, features: Path, out
                        _names("photo(s) in no pair", alone))
     if not pairs:
         raise SekdError(f"{out}: no pairs among the {len(names)} posed photos; raise --max-angle or use --pairs retrieval")
-    return write_pairs(pairs, out / "pairs.txt")
+    return write_pairs(pairs, out / record.PAIRS)
 
 
-def _config_dict(config: TriangulateConfig) -> dict:
-    data = asdict(config)
-    data["features"].pop("weights", None)  # a local path; the model's hash is in features.h5
-    return data
+@dataclass
+class Triangulation:
+    """What the steps of ``TRIANGULATE`` have made so far, and the record they fill (``stats``).
+
+    ``model``: the Reconstruction the poses were read from (its points choose pairs); ``reference``: the one
+    triangulated (its posed photos below ``image_dir``, no points); ``options`` / ``two_view``: pycolmap's
+    triangulator and verification options; ``keypoints``: what the database gets (the refined keypoints, or the
+    features); ``result``: the triangulated Reconstruction.
+    """
+
+    image_dir: Path
+    photos: list[str]
+    model: Any
+    reference: Any
+    config: TriangulateConfig
+    options: Any
+    two_view: Any
+    stats: dict
+    features: Path | None = None
+    pairs_file: Path | None = None
+    pairs: list[Pair] = field(default_factory=list)
+    matches: Path | None = None
+    keypoints: Path | None = None
+    database: Path | None = None
+    result: Any = None
+
+    @property
+    def names(self) -> list[str]:
+        """The posed photos triangulated, sorted."""
+        return sorted(im.name for im in self.reference.images.values())
 
 
 def triangulate(image_dir: str | Path, poses: str | Path, output_dir: str | Path,
                 config: TriangulateConfig | None = None, *, overwrite: bool = False, num_threads: int | None = None,
-                progress: bool = True, executor: str = "local", ray_options: RayOptions | None = None) -> Path:
+                progress: bool = True, executor: str = "local", ray_options: RayOptions | None = None,
+                options: RunOptions | None = None) -> Path:
     """Triangulate the photos below ``image_dir`` with the poses of ``poses`` into ``output_dir``; returns the
     model folder (``output_dir``/model). Holds the folder's lock; features and matches of an earlier run with
-    the same settings are reused. SekdError for bad input (one clear sentence)."""
+    the same settings are reused. How the run runs: ``options`` (a RunOptions), or its fields ``overwrite``,
+    ``num_threads``, ``progress``, ``executor`` and ``ray_options`` as keywords. SekdError for bad input (one
+    clear sentence)."""
     require_pycolmap()
     config = config or TriangulateConfig()
+    options = options or RunOptions(overwrite=overwrite, num_threads=num_threads, progress=progress,
+                                    executor=executor, ray_options=ray_options)
     if config.pairs not in PAIR_SOURCES:
         raise SekdError(f"unknown pair source {config.pairs!r}; choose from {', '.join(PAIR_SOURCES)}")
     image_dir, out = Path(image_dir), Path(output_dir)
     if not image_dir.is_dir():
         raise SekdError(f"{image_dir}: not a folder of images; give the folder holding the photos")
     # Options and poses are checked first: a typo or a bad line fails in a second, before OUT is made.
-    options = triangulator_options(config.mapper, config.seed)
+    triangulator = triangulator_options(config.mapper, config.seed)
     two_view = two_view_options(config.verification, config.seed)
     photos = list_images(image_dir)
     model, reference = read_known_poses(Path(poses), image_dir, photos, config)
     stats: dict = {"status": "running", "images_dir": str(image_dir), "poses": str(poses),
-                   "poses_kind": "model" if Path(poses).is_dir() else "poses file", "config": _config_dict(config),
+                   "poses_kind": "model" if Path(poses).is_dir() else "poses file", "config": config_dict(config),
                    "versions": package_versions(), "photos": len(photos), "posed": reference.num_images()}
-    out.mkdir(parents=True, exist_ok=True)
-    with exclusive_lock(out, what="triangulation folder"):
-        clean_logs(out / "colmap.log")
-        run = {"overwrite": overwrite, "num_threads": num_threads, "progress": progress, "executor": executor,
-               "ray_options": ray_options}
-        return _locked(image_dir, photos, model, reference, out, config, options, two_view, run, stats)
+    state = Triangulation(image_dir, photos, model, reference, config, triangulator, two_view, stats)
+    with Run(out, options, lock="triangulation folder") as run:
+        clean_logs(out / record.COLMAP_LOG)  # left by a killed run: nobody else uses them while we hold the lock
+        state = run_steps(run, TRIANGULATE, state)
+        stats.update(status="ok", model=triangulation_stats(state.result), output=str(out / record.MODEL),
+                     timings_s=run.timings())
+        record.write_record(stats, out)
+    return out / record.MODEL
 
 
-def _locked(image_dir: Path, photos: list[str], model, reference, out: Path, config: TriangulateConfig, options,
-            two_view, run: dict, stats: dict) -> Path:
-    """The run inside OUT's lock: every stage in turn, timed, then stats.json."""
-    timings: dict[str, float] = {}
+# ----------------------------------------------------------------------------- the steps, in order
 
-    def timed(stage: str, start: float) -> None:
-        timings[stage] = round(time.perf_counter() - start, 3)
+def extract(run: Run, s: Triangulation) -> Triangulation:
+    """OUT's feature file of the posed photos (made or resumed)."""
+    photos = _photo_view(s.image_dir, s.photos, s.names, run.out)
+    s.features = extract_features(photos, run.out / s.config.file_names[0], s.config.features,
+                                  overwrite=run.options.overwrite, num_threads=run.num_threads, progress=run.progress,
+                                  executor=run.executor)
+    return s
 
-    names = sorted(im.name for im in reference.images.values())
-    features_path, matches_path = out / config.file_names[0], out / config.file_names[1]
-    with execution.using(run["executor"], run["ray_options"]) as executor:
-        start = time.perf_counter()
-        extract_features(_photo_view(image_dir, photos, names, out), features_path, config.features,
-                         overwrite=run["overwrite"], num_threads=run["num_threads"], progress=run["progress"],
-                         executor=executor)
-        timed("extract", start)
-        start = time.perf_counter()
-        pairs_file = _make_pairs(config, model, reference, features_path, out, run["progress"])
-        timed("pairs", start)
-        start = time.perf_counter()
-        match_features(features_path, pairs_file, matches_path, config.matching, overwrite=run["overwrite"],
-                       num_threads=run["num_threads"], progress=run["progress"], executor=executor)
-        timed("match", start)
-    pairs = read_pairs(pairs_file)
-    stats["pairs"] = len(pairs)
-    keypoints = features_path
-    if config.refine.enabled:
-        start = time.perf_counter()
-        keypoints = refine_keypoints(features_path, matches_path, pairs, image_dir,
-                                     out / refined_name(config.file_names[0]), config.refine, progress=run["progress"])
-        stats["refine"] = refine_summary(keypoints)
-        timed("refine", start)
-    database = out / "database.db"
-    with colmap_log(out / "colmap.log"):
-        start = time.perf_counter()
-        create_pose_database(reference, keypoints, matches_path, pairs, database)
-        verify_matches(database, two_view, run["num_threads"] or -1)
-        with open_database(database) as db:
-            stats["verified_pairs"] = int(db.num_verified_image_pairs())
-        timed("verification", start)
-        start = time.perf_counter()
-        logger.info("triangulating %d photos with their poses fixed", len(names))
-        result = triangulate_known(reference, database, image_dir, out, options, config.refine_intrinsics)
-        timed("triangulation", start)
-    stats.update(status="ok", model=triangulation_stats(result), output=str(out / MAIN_MODEL),
-                 timings_s={**timings, "total": round(sum(timings.values()), 3)})
-    write_json(stats, out / "stats.json")
-    return out / MAIN_MODEL
+
+def pairs(run: Run, s: Triangulation) -> Triangulation:
+    """OUT's pairs file: from the known poses, or by retrieval (``config.pairs``)."""
+    s.pairs_file = _make_pairs(s.config, s.model, s.reference, s.features, run.out, run.progress)
+    return s
+
+
+def match(run: Run, s: Triangulation) -> Triangulation:
+    """OUT's match file (made or resumed); the record counts the pairs."""
+    s.matches = match_features(s.features, s.pairs_file, run.out / s.config.file_names[1], s.config.matching,
+                               overwrite=run.options.overwrite, num_threads=run.num_threads, progress=run.progress,
+                               executor=run.executor)
+    s.pairs = read_pairs(s.pairs_file)
+    s.stats["pairs"] = len(s.pairs)
+    return s
+
+
+def refine(run: Run, s: Triangulation) -> Triangulation:
+    """The keypoints moved to where their matches agree (``stages.refine``)."""
+    s.keypoints = refine_keypoints(s.features, s.matches, s.pairs, s.image_dir,
+                                   run.out / record.refined_name(s.config.file_names[0]), s.config.refine,
+                                   progress=run.progress)
+    s.stats["refine"] = refine_summary(s.keypoints)
+    return s
+
+
+def verification(run: Run, s: Triangulation) -> Triangulation:
+    """COLMAP's database of the given rigs, cameras, frames and images, the keypoints and the matches, verified
+    geometrically; COLMAP's log goes to OUT from here to the run's end."""
+    run.hold(colmap_log(run.out / record.COLMAP_LOG))
+    s.database = run.out / record.DATABASE
+    s.keypoints = s.keypoints or s.features
+    create_pose_database(s.reference, s.keypoints, s.matches, s.pairs, s.database)
+    verify_matches(s.database, s.two_view, run.num_threads or -1)
+    with open_database(s.database) as db:
+        s.stats["verified_pairs"] = int(db.num_verified_image_pairs())
+    return s
+
+
+def triangulation(run: Run, s: Triangulation) -> Triangulation:
+    """The points triangulated with every pose (and, unless refined, every intrinsic) fixed; OUT/model."""
+    logger.info("triangulating %d photos with their poses fixed", len(s.names))
+    s.result = triangulate_known(s.reference, s.database, s.image_dir, run.out, s.options, s.config.refine_intrinsics)
+    return s
+
+
+#: ``sekd triangulate``, step by step; the record's ``timings_s`` has one entry per step run, and their total.
+TRIANGULATE: tuple[Step, ...] = (
+    Step("extract", extract),
+    Step("pairs", pairs),
+    Step("match", match),
+    Step("refine", refine, when=lambda s: s.config.refine.enabled),
+    Step("verification", verification),
+    Step("triangulation", triangulation),
+)
 
 
 def format_triangulation(stats: dict) -> str:
-    """One line for the console: what ``stats.json`` says of the model."""
+    """One line for the console: what the run's record says of the model."""
     m = stats["model"]
     return (f"{stats['output']}: {m['points3D']:,} points from {m['images_with_points']}/{m['images']} posed photos, "
             f"{m['observations']:,} observations, mean track length {m['mean_track_length']:.2f}, "

@@ -55,67 +55,16 @@ class SplatExport:
     masks: int  # photos with a mask file (0: the export has no masks/)
 
 
-# ----------------------------------------------------------------------------- where the photos are
+# ----------------------------------------------------------------------------- the model and its photos
 
-def reconstruction_stats(model: Path) -> tuple[dict, Path | None]:
-    """The ``stats.json`` of the ``sekd reconstruct`` run that wrote ``model`` (``OUT/model`` or
-    ``OUT/models/<k>``), and OUT; ``({}, None)`` when there is none."""
-    for out in (model.parent, model.parent.parent):
-        path = out / "stats.json"
-        if path.is_file():
-            try:
-                stats = json.loads(path.read_text())
-            except (OSError, ValueError):
-                continue
-            if isinstance(stats, dict) and "images_dir" in stats:
-                return stats, out
-    return {}, None
-
-
-def _run_directory(out: Path, stats: dict) -> Path | None:
-    """The working folder ``sekd reconstruct`` ran in, from OUT and the model path it recorded
-    (relative to that folder): recorded folders that are relative are relative to it."""
-    recorded = Path(str(stats.get("output", "")))
-    if recorded.is_absolute() or not recorded.parts:
-        return None
-    relative_out = recorded.parent.parts
-    out = out.resolve()
-    if not relative_out:
-        return out
-    if ".." in relative_out or out.parts[-len(relative_out):] != relative_out:
-        return None
-    return out.parents[len(relative_out) - 1]
-
-
-def recorded_folder(value: str, out: Path, stats: dict) -> Path:
-    """A folder recorded in stats.json: absolute as is; relative, from where reconstruct ran,
-    else from the current folder (the first of the two that exists)."""
-    path = Path(value)
-    if path.is_absolute():
-        return path
-    base = _run_directory(out, stats)
-    candidates = ([base / path] if base is not None else []) + [path]
-    return next((c for c in candidates if c.is_dir()), candidates[0])
-
-
-def source_folders(model: Path, images: Path | None, masks: Path | None) -> tuple[Path, Path | None]:
-    """The photo folder and the mask folder (None: no masks) of ``model``: the given ones, else those
-    recorded by the reconstruction (``stats.json``: ``images_dir``, ``config.masks``)."""
-    stats, out = reconstruction_stats(model)
-    if images is None:
-        if out is None:
-            raise SekdError(f"{model}: no stats.json of `sekd reconstruct` beside the model to find the photos in; "
-                            "give the photos' folder with --images")
-        images = recorded_folder(stats["images_dir"], out, stats)
-        if not images.is_dir():
-            raise SekdError(f"{images}: the photo folder recorded in {out / 'stats.json'} does not exist; "
-                            "give the photos' folder with --images")
-    recorded_masks = (stats.get("config") or {}).get("masks") if out is not None else None
-    if masks is None and recorded_masks:
-        masks = recorded_folder(recorded_masks, out, stats)
-    if masks is not None and not masks.is_dir():
-        raise SekdError(f"{masks}: the mask folder does not exist; give the right one with --masks")
-    return Path(images), masks
+def read_exportable(model: str | Path):
+    """``(the model's folder, its Reconstruction)`` for ``model`` (a model folder or an export folder holding one);
+    SekdError when it is no model or registers no image."""
+    model = model_folder(model)
+    reconstruction = read_model(model)
+    if reconstruction.num_reg_images() == 0:
+        raise SekdError(f"{model}: the model has no registered image to export")
+    return model, reconstruction
 
 
 def check_photos(reconstruction, images: Path) -> None:
@@ -313,21 +262,20 @@ def publish(staging: Path, output: Path) -> None:
     shutil.rmtree(staging)
 
 
-def export_nerfstudio(model: str | Path, output: str | Path, images: str | Path | None = None,
-                      masks: str | Path | None = None, max_size: int | None = None,
-                      overwrite: bool = False) -> SplatExport:
+def export_nerfstudio(model: str | Path, output: str | Path, images: str | Path, masks: str | Path | None = None,
+                      max_size: int | None = None, overwrite: bool = False) -> SplatExport:
     """Write the folder for Gaussian Splatting and NeRF training (module docstring) from ``model``.
 
-    ``images``: the photos' folder (default: the one recorded in the reconstruction's stats.json);
-    ``masks``: their masks, ``MASKS/NAME.png`` (default: the recorded ``config.masks``, if any);
-    ``max_size``: reduce the exported images (and intrinsics) to at most this many px on the long side.
+    ``images``: the photos' folder (photo NAME is ``IMAGES/NAME``); ``masks``: their masks, ``MASKS/NAME.png``
+    (None: no masks). ``sekd export`` finds both, when not given, in the record of the reconstruction that wrote
+    the model (``pipelines.record.Record.of_model``). ``max_size``: reduce the exported images (and intrinsics) to
+    at most this many px on the long side.
     Refuses a non-empty ``output`` unless ``overwrite``; SekdError naming the first missing photo.
     """
-    model = model_folder(model)
-    reconstruction = read_model(model)
-    if reconstruction.num_reg_images() == 0:
-        raise SekdError(f"{model}: the model has no registered image to export")
-    image_dir, mask_dir = source_folders(model, Path(images) if images else None, Path(masks) if masks else None)
+    model, reconstruction = read_exportable(model)
+    image_dir, mask_dir = Path(images), Path(masks) if masks else None
+    if mask_dir is not None and not mask_dir.is_dir():
+        raise SekdError(f"{mask_dir}: the mask folder does not exist; give the right one with --masks")
     check_photos(reconstruction, image_dir)
     output = Path(output)
     created = prepare_output(output, overwrite)

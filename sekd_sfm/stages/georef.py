@@ -14,7 +14,7 @@ Altitude rule: the altitude is used only when every photo with GPS has one. Othe
 are set to 0 (the camera centres are assumed to lie in a horizontal plane at the origin),
 ``vertical_constrained`` is false and the residuals are horizontal distances.
 
-Not georeferenced (a warning, the model kept as mapped, stats.json ``georeference`` says
+Not georeferenced (a warning, the model kept as mapped, the record's ``georeference`` says
 why, no georef.json): fewer than 3 registered photos with GPS, positions all within
 ``min_spread_m`` of each other, positions on a line (their second principal spread below
 ``min_spread_m`` or 2 % of the first: the rotation about the line is undetermined), model
@@ -30,12 +30,12 @@ import numpy as np
 
 from ..errors import SekdError
 from ..files import features as ff
+from ..files.atomic import write_json
 from ..files.gps import GPSPosition, read_gps
 from ..files.images import list_images
-from .pairs import GpsNeighbors
 from ..runtime import package_versions
 from .colmap import require_pycolmap
-from ..files.atomic import write_json
+from .pairs import GpsNeighbors
 
 logger = logging.getLogger("sekd")
 GPS_MODES = ("auto", "off", "pairs", "align")
@@ -271,7 +271,7 @@ def robust_similarity(src: np.ndarray, tgt: np.ndarray, max_error_m: float, vert
 def georeference(models: list, plan: GpsPlan, config: GpsConfig, seed: int = 0) -> dict:
     """Align ``models[0]`` (the main model, transformed in place) to the GPS positions of ``plan``.
 
-    Returns the record for stats.json ``georeference`` (and georef.json when ``georeferenced``):
+    Returns the run's record's ``georeference`` entry (and georef.json when ``georeferenced``):
     origin, frame, similarity, per-image residuals (metres), median / max, inliers, or why not.
     """
     record = {"georeferenced": False, **plan.summary()}

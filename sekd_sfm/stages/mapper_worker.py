@@ -145,7 +145,7 @@ def final_filter(reconstruction, refine: dict, num_threads: int, pycolmap, fixed
     ring under a long lens 0.985 -> 0.993 at 640 px (SIFT 0.991), 0.991 -> 0.997 at 1280 px (SIFT 0.998);
     fountain-P11 0.970 -> 0.988 (AUC@1 0.852 -> 0.938: its principal point, tested afterwards, is no
     longer pulled by the outliers) (docs/experiments.md, section 30).
-    Returns the record for stats.json (threshold, removed observations, error before/after, seconds).
+    Returns its entry in the run's record (threshold, removed observations, error before/after, seconds).
     """
     start = time.perf_counter()
     errors = reprojection_errors(reconstruction)

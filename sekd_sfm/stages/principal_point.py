@@ -24,7 +24,7 @@ view 24 deg) it moved 76 px and the median pose error went from 0.43 to 8.6 deg 
    lost. Otherwise the model keeps its centred principal points.
 
 ``refine`` lets the mapper refine it throughout (the former ``auto`` on 8+ photos), ``fixed``
-never; ``--mapper ...refine_principal_point=...`` still wins. stats.json records the outcome
+never; ``--mapper ...refine_principal_point=...`` still wins. The run's record keeps the outcome
 (``principal_point``: refined / fixed / set by --mapper) and why (``principal_point_decision``).
 
 This module is also the test's child process (``python -m sekd_sfm.stages.principal_point``, the
@@ -90,7 +90,7 @@ class PrincipalPointPlan:
     models: list[dict] = field(default_factory=list)
 
     def details(self) -> dict:
-        """The record for stats.json (``principal_point_decision``): the outcome, why, and the test's measurements."""
+        """The run's record's ``principal_point_decision``: the outcome, why, and the test's measurements."""
         record = {"setting": self.setting, "outcome": self.outcome, "reason": self.reason}
         if self.test:
             record["thresholds"] = {"min_significance": self.min_significance,
@@ -379,7 +379,7 @@ def _camera_record(camera, original, covariance, sigma: float, refine_focal: boo
 
 
 def _reason(record: dict, problems: list[str], min_significance: float, min_gain: float) -> str:
-    """One line for stats.json and the log: the outcome and the measurements behind it."""
+    """One line for the run's record and the log: the outcome and the measurements behind it."""
     def px(value: float) -> str:
         return f"{value:.2f}" if abs(value) < 1 else f"{value:.1f}"
 

@@ -22,6 +22,10 @@ patches have the size the detector saw; shifts are applied in original pixels.
 
 Output: an hloc-layout keypoints file (``<image>/keypoints``, ``<image>/image_size``) that
 ``create_database`` (and hloc's triangulation) reads in place of the feature file's keypoints.
+
+Steps 1-2 are per pair and run as an ``execution.Stage`` (``RefineWorker``) on the caller's executor
+(this process or a Ray cluster), saved pair by pair to ``<output stem>-pairs.h5`` (a killed run
+resumes from the pairs it finished; the file goes once the output is written); step 3 runs here.
 """
 from __future__ import annotations
 
@@ -37,8 +41,10 @@ import h5py
 import numpy as np
 
 from ..errors import SekdError
+from ..execution import Executor, Stage, using
 from ..files import features as ff
 from ..files import matches as mf
+from ..files import partstore
 from ..files.atomic import atomic_output
 from ..files.images import ImageReadError, load_scaled, to_resized_pixels
 from ..runtime import package_versions
@@ -46,6 +52,10 @@ from ..runtime import package_versions
 logger = logging.getLogger("sekd")
 
 FORMAT = "sekd-keypoints"
+#: The per-pair alignments of a refinement in progress (``RefineWorker``'s output).
+PAIRS_FORMAT = "sekd-refine-pairs"
+#: Pairs per worker call on a Ray cluster (a local run makes one call for all of them).
+PAIRS_PER_TASK = 16
 #: Long side (px) the photos are aligned at when the feature file does not say (an hloc file):
 #: the resolution ``sekd reconstruct`` extracts at.
 DEFAULT_ALIGN_MAX = 1600
@@ -245,6 +255,119 @@ def _pair_edges(a: AlignImage, b: AlignImage, ka: np.ndarray, kb: np.ndarray, id
     return ia[ok], ib[ok], A[ok], t[ok].astype(np.float64)
 
 
+def _edges_arrays(kept, considered: int, a: AlignImage, b: AlignImage) -> dict[str, np.ndarray]:
+    """What a pair contributes to the solve: its kept matches' keypoint indices, local affine maps and alignments
+    (empty when none is kept), the matches considered, and both photos' original pixels per processed pixel."""
+    if kept is None:
+        kept = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2, 2)), np.zeros((0, 2)))
+    ia, ib, A, t = kept
+    return {"ia": ia.astype(np.int64), "ib": ib.astype(np.int64), "A": A.astype(np.float64),
+            "t": t.astype(np.float64), "considered": np.int64(considered),
+            "scales": np.array([a.sx, a.sy, b.sx, b.sy], np.float64)}
+
+
+class RefineWorker:
+    """Refinement's per-pair work (an ``execution.Stage`` worker): for each pair key (``matches.pair_key``), the
+    geometrically kept matches and their patch alignments (``_pair_edges``). Built once per process; decoded
+    photos are cached across calls (``_ImageCache``)."""
+
+    def __init__(self, image_dir: str, features: str, matches: str, anchor: str | None, config: dict,
+                 resize_max: int | None):
+        self.features, self.matches = Path(features), Path(matches)
+        self.anchor = Path(anchor) if anchor else None
+        self.config = RefineConfig(**config)
+        self.images = _ImageCache(Path(image_dir), resize_max)
+
+    def _keypoints(self, names: set[str]) -> dict[str, np.ndarray]:
+        """Keypoints (float64, original pixels) of ``names``: the anchor's where it has the image, else the features'."""
+        found: dict[str, np.ndarray] = {}
+        if self.anchor is not None:
+            with h5py.File(self.anchor, "r") as f:
+                found = {n: f[n]["keypoints"][()].astype(np.float64) for n in names if n in f}
+        with h5py.File(self.features, "r") as f:
+            found.update({n: f[n]["keypoints"][()].astype(np.float64) for n in names if n not in found})
+        return found
+
+    def __call__(self, keys: list[str]):
+        pairs = [tuple(json.loads(key)) for key in keys]
+        keypoints = self._keypoints({name for pair in pairs for name in pair})
+        for key, (name0, name1, idx, _) in zip(keys, mf.iter_matches(self.matches, pairs)):
+            a, b = self.images[name0], self.images[name1]
+            kept = _pair_edges(a, b, keypoints[name0], keypoints[name1], idx, self.config)
+            yield key, _edges_arrays(kept, len(idx), a, b), ""
+
+
+def _edge_group(key: str) -> str:
+    """The pairs file's group of a pair key: a digest, since names may hold '/' (the key is kept as an attribute)."""
+    return hashlib.sha1(key.encode()).hexdigest()
+
+
+def write_edge_group(f: h5py.File, key: str, arrays: dict[str, np.ndarray]) -> None:
+    """Store one pair's arrays in the pairs file (a re-merged part replaces, never duplicates)."""
+    name = _edge_group(key)
+    if name in f:
+        del f[name]
+    group = f.create_group(name)
+    group.attrs["pair"] = key
+    for array_name, value in arrays.items():
+        group.create_dataset(array_name, data=value)
+
+
+def _pairs_file(output: Path) -> Path:
+    return output.with_name(f"{output.stem}-pairs.h5")
+
+
+def _align_pairs(features: Path, matches: Path, pairs: list[tuple[str, str]], image_dir: Path, output: Path,
+                 config: RefineConfig, signature: str, anchor: Path | None, executor: Executor,
+                 progress: bool) -> dict[str, dict[str, np.ndarray]]:
+    """Every pair's arrays (``RefineWorker``), by pair key: computed on ``executor`` into the pairs file beside
+    ``output``, those a killed run with the same inputs finished reused."""
+    path = _pairs_file(output)
+    parts = partstore.PartStore(path, max_items=64)
+    attrs = {"format": PAIRS_FORMAT, "signature": signature}
+    stale = path.is_file() and not _has_signature(path, signature)
+    partstore.prepare_output(path, attrs, parts, overwrite=stale, compare=("signature",))
+    keys = [mf.pair_key(a, b) for a, b in pairs]
+    done = _stored_pairs(path) | parts.keys()
+    stage = Stage(name="refine keypoints", worker=RefineWorker,
+                  args=(str(image_dir.resolve()), str(features.resolve()), str(matches.resolve()),
+                        str(anchor.resolve()) if anchor else None, config.as_dict(), _alignment_resolution(features)),
+                  batches=[[key] for key in keys if key not in done], output=path, write_group=write_edge_group,
+                  unit="pair", items="pairs", verb="aligned", joinable=True, per_task=PAIRS_PER_TASK)
+
+    def on_error(key: str, error: str) -> None:  # a pair fails only with its whole run (its worker raises)
+        raise SekdError(error)
+
+    try:
+        executor.run(stage, parts, on_error, progress=progress)
+    except BaseException:
+        if not _stored_pairs(path) and not parts.keys():  # nothing to resume from: leave no file behind
+            _remove_pairs_file(output)
+        raise
+    with h5py.File(path, "r") as f:
+        return {group.attrs["pair"]: {n: d[()] for n, d in group.items()} for group in f.values()}
+
+
+def _has_signature(path: Path, signature: str) -> bool:
+    try:
+        with h5py.File(path, "r") as f:
+            return f.attrs.get("format") == PAIRS_FORMAT and f.attrs.get("signature") == signature
+    except OSError:
+        return False
+
+
+def _stored_pairs(path: Path) -> set[str]:
+    with h5py.File(path, "r") as f:
+        return {str(group.attrs["pair"]) for group in f.values()}
+
+
+def _remove_pairs_file(output: Path) -> None:
+    """The pairs file and its parts, once the output holds what they were for."""
+    path = _pairs_file(output)
+    partstore.PartStore(path).clear()
+    path.unlink(missing_ok=True)
+
+
 def _signature(features: Path, matches: Path, pairs: list[tuple[str, str]], config: RefineConfig,
                anchor: Path | None = None) -> str:
     """What the refined keypoints depend on: the files (size, modification time), the pairs, the settings."""
@@ -273,7 +396,7 @@ def _alignment_resolution(features: Path) -> int | None:
 
 def refine_keypoints(features: str | Path, matches: str | Path, pairs: list[tuple[str, str]], image_dir: str | Path,
                      output: str | Path, config: RefineConfig | None = None, progress: bool = True,
-                     anchor: str | Path | None = None) -> Path:
+                     anchor: str | Path | None = None, executor: str | Executor = "local") -> Path:
     """Refined keypoints of every image of ``features`` (hloc layout, original pixels) written to ``output``.
 
     ``pairs`` are the matched pairs to use (read from ``matches``). Reused when ``output`` was
@@ -282,9 +405,9 @@ def refine_keypoints(features: str | Path, matches: str | Path, pairs: list[tupl
 
     ``anchor``: an earlier refined file (``sekd reconstruct --extend``): its images keep its keypoints
     exactly and are the fixed ends of their matches, so only the other images' keypoints move.
+    ``executor``: where the per-pair alignments run (an open executor, e.g. a pipeline's ``run.executor``, or the
+    name of one; the same file either way). Call it holding the output folder's lock (the pipelines do).
     """
-    from tqdm import tqdm
-
     config = config or RefineConfig()
     features, matches, image_dir, output = Path(features), Path(matches), Path(image_dir), Path(output)
     anchor = Path(anchor) if anchor is not None else None
@@ -303,19 +426,18 @@ def refine_keypoints(features: str | Path, matches: str | Path, pairs: list[tupl
     keypoints.update({n: k.astype(np.float64) for n, k in anchored.items()})
     first = np.cumsum([0] + [len(keypoints[n]) for n in names])
     base = dict(zip(names, first[:-1].tolist()))
-    images = _ImageCache(image_dir, _alignment_resolution(features))
+    wanted = [p for p in pairs if p[0] in base and p[1] in base]
+    with using(executor) as runner:
+        aligned = _align_pairs(features, matches, wanted, image_dir, output, config, signature, anchor, runner,
+                               progress)
     scales: dict[str, tuple[float, float]] = {}
     edges, considered = [], 0
-    wanted = [p for p in pairs if p[0] in base and p[1] in base]
-    for name0, name1, idx, _ in tqdm(mf.iter_matches(matches, wanted), total=len(wanted), unit="pair",
-                                     desc="refining keypoints", disable=not progress):
-        a, b = images[name0], images[name1]
-        scales[name0], scales[name1] = (a.sx, a.sy), (b.sx, b.sy)
-        considered += len(idx)
-        kept = _pair_edges(a, b, keypoints[name0], keypoints[name1], idx, config)
-        if kept is not None:
-            ia, ib, A, t = kept
-            edges.append((base[name0] + ia, base[name1] + ib, A, t))
+    for name0, name1 in wanted:  # in the pairs' order, whatever order they were computed in
+        pair = aligned[mf.pair_key(name0, name1)]
+        sx0, sy0, sx1, sy1 = pair["scales"].tolist()
+        scales[name0], scales[name1] = (sx0, sy0), (sx1, sy1)
+        considered += int(pair["considered"])
+        edges.append((base[name0] + pair["ia"], base[name1] + pair["ib"], pair["A"], pair["t"]))
     if edges:
         ia, ib, A, t = (np.concatenate(part) for part in zip(*edges))
     else:
@@ -344,6 +466,7 @@ def refine_keypoints(features: str | Path, matches: str | Path, pairs: list[tupl
                 group["keypoints"].attrs["uncertainty"] = uncertainty[name]
             if name in sizes:
                 group.create_dataset("image_size", data=sizes[name])
+    _remove_pairs_file(output)
     logger.info("%s: %d of %d matches aligned, median shift %.3f px", output, summary["aligned"], considered,
                 summary["median_shift_px"])
     return output

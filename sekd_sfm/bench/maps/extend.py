@@ -76,8 +76,8 @@ def camera_movement(base_model: Path, extended_model: Path) -> dict:
     and whether each kept its image id."""
     import numpy as np
 
-    from ...stages.colmap import require_pycolmap
     from ...pipelines.extend import pose_matrix
+    from ...stages.colmap import require_pycolmap
 
     pycolmap = require_pycolmap()
     before, after = pycolmap.Reconstruction(str(base_model)), pycolmap.Reconstruction(str(extended_model))
@@ -142,6 +142,7 @@ def run_extend_benchmark(scene_dir: Path, output: Path, new: int, num_threads: i
 
 def _score(scene_dir: Path, output: Path, scene: dict, covisible: dict, base_names: list[str], new_names: list[str],
            runs: dict, suffix: str = "") -> dict:
+    from ...pipelines.record import Record
     from ...runtime import run_record
     from ..scale.run import evaluate_model
 
@@ -151,8 +152,7 @@ def _score(scene_dir: Path, output: Path, scene: dict, covisible: dict, base_nam
     steps = [s for s in STEPS if s in runs]
     models = {step: evaluate_model(folder[step] / "model", scene, covisible) for step in steps if step != "base"}
     split = {step: split_auc(folder[step] / "model", scene, base_names, new_names) for step in steps}
-    stats = json.loads((folder["extended"] / "stats.json").read_text())
-    extension = stats["extensions"][-1]
+    extension = Record.from_record(folder["extended"], needs="extensions").data["extensions"][-1]
     result = {
         "record": run_record(),
         "scene": str(scene_dir), "photos": len(base_names) + len(new_names),

@@ -29,7 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from ...evaluation.strecha import read_cameras
+from ...files.atomic import write_json
 from ...files.gps import GPSPosition, write_gps
+from ...pipelines.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
+from ...pipelines.record import GEOREF, read_record
 from ...runtime import package_versions, run_record
 from ...stages.georef import (
     GpsConfig,
@@ -38,8 +41,6 @@ from ...stages.georef import (
     geodetic_from_enu,
     robust_similarity,
 )
-from ...pipelines.reconstruct import ReconstructConfig, ReconstructionError, reconstruct
-from ...files.atomic import write_json
 from ..sfm import resolve_scene
 
 logger = logging.getLogger("sekd")
@@ -131,10 +132,10 @@ def run_level(scene: Path, work: Path, truth: dict[str, np.ndarray], sigma_m: fl
         failure = str(exc).splitlines()[0]
     row.update(wall_time_s=round(time.perf_counter() - start, 1), failure=failure,
                gps_error={"median_m": float(np.median(gps_error)), "mean_m": float(gps_error.mean())})
-    stats = json.loads((out / "stats.json").read_text()) if (out / "stats.json").is_file() else {}
+    stats = read_record(out) or {}
     row["registered_images"] = stats.get("model", {}).get("registered_images", 0)
     row["georeference"] = stats.get("georeference")
-    georef_file = out / "georef.json"
+    georef_file = out / GEOREF
     if failure is None and georef_file.is_file():
         georef = json.loads(georef_file.read_text())
         from ...stages.colmap import require_pycolmap

@@ -35,20 +35,20 @@ from ...errors import SekdError
 from ...evaluation.metrics import rotation_angle_deg
 from ...evaluation.strecha import read_cameras
 from ...features import FeatureConfig
+from ...files.atomic import write_json
 from ...files.images import list_images
 from ...files.poses import pose_line, read_poses
-from ...stages.match import match_descriptors
-from ...runtime import package_versions, run_record, shared_dir
-from ...stages.colmap import colmap_log, log_prefix, open_database, require_pycolmap
-from ...stages.database import camera_key
 from ...pipelines.localize import (
     LocalizeConfig,
     estimate_pose,
     localize,
 )
-from ...stages.mapping import mapper_options, run_mapper
 from ...pipelines.reconstruct import ReconstructConfig, reconstruct
-from ...files.atomic import write_json
+from ...runtime import package_versions, run_record, shared_dir
+from ...stages.colmap import colmap_log, log_prefix, open_database, require_pycolmap
+from ...stages.database import camera_key
+from ...stages.mapping import mapper_options, run_mapper
+from ...stages.match import match_descriptors
 from ..sfm import poses_of as model_poses
 
 logger = logging.getLogger("sekd")

@@ -10,7 +10,6 @@ model also its pose errors against the ground truth (``bench.sfm.evaluate``).
 """
 from __future__ import annotations
 
-import json
 import shutil
 import time
 from dataclasses import replace
@@ -19,11 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from ...evaluation.strecha import StrechaCamera, read_cameras
+from ...files.atomic import write_json
+from ...pipelines.reconstruct import ReconstructConfig, reconstruct
+from ...pipelines.record import Record
+from ...pipelines.triangulate import TriangulateConfig, triangulate, triangulation_stats
 from ...runtime import package_versions, run_record
 from ...stages.colmap import require_pycolmap
-from ...pipelines.reconstruct import ReconstructConfig, reconstruct
-from ...files.atomic import write_json
-from ...pipelines.triangulate import TriangulateConfig, triangulate, triangulation_stats
 from ..sfm import evaluate, resolve_scene
 
 
@@ -62,7 +62,7 @@ def _run_triangulation(images: Path, poses: Path, work: Path, config: Triangulat
     start = time.perf_counter()
     triangulate(images, poses, work, config, num_threads=num_threads, progress=False)
     wall = time.perf_counter() - start
-    stats = json.loads((work / "stats.json").read_text())
+    stats = Record.from_record(work, needs="model").data
     return {"method": label, "wall_time_s": round(wall, 1), "stage_times_s": stats["timings_s"],
             "core_stage_s": stats["timings_s"]["triangulation"],
             "pairs": stats["pairs"], "verified_pairs": stats["verified_pairs"], **stats["model"]}
@@ -74,7 +74,7 @@ def _run_free(images: Path, work: Path, config: ReconstructConfig, num_threads: 
     model_path = reconstruct(images, work, config, num_threads=num_threads, progress=False)
     wall = time.perf_counter() - start
     model = require_pycolmap().Reconstruction(str(model_path))
-    stats = json.loads((work / "stats.json").read_text())
+    stats = Record.from_record(work, needs="model").data
     errors = evaluate(model, truth)
     return {"method": "free reconstruction (sekd reconstruct)", "wall_time_s": round(wall, 1),
             "stage_times_s": stats.get("timings_s", {}), "core_stage_s": stats.get("timings_s", {}).get("mapping"),
@@ -110,7 +110,7 @@ def benchmark_triangulation(scene: str | Path, output_dir: str | Path, config: T
     runs.append(_run_triangulation(images, model, out / "triangulated_all_pairs", replace(config, max_angle_deg=180.0),
                                    num_threads, "triangulated from the true poses, every pair (--max-angle 180)"))
     report = {"scene": str(scene), "images": len(truth), "resize_max": config.features.resize_max,
-              "config": json.loads((out / "triangulated" / "stats.json").read_text())["config"],
+              "config": Record.from_record(out / "triangulated").config_data,
               "results": runs, "versions": package_versions(), "record": run_record()}
     write_json(report, out / "results.json")
     (out / "results.md").write_text(triangulation_markdown(report))

@@ -263,10 +263,13 @@ def _stage_record(m: Measurement) -> dict:
 
 def run_ours(scene_dir: Path, work: Path, config, num_threads: int | None) -> dict:
     """Our pipeline from scratch; per-stage records cut out of one sampled process timeline."""
+    # Not at the top: it loads torch, which the baseline's processes (they import this module) never need.
+    from ...pipelines.record import read_record
+
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     m = run_measured(_ours, (str(scene_dir / "images"), str(work), config, num_threads), work / "measure.json")
-    stats = json.loads((work / "stats.json").read_text()) if (work / "stats.json").is_file() else {}
+    stats = read_record(work) or {}
     timings = {k: v for k, v in stats.get("timings_s", {}).items() if k != "total"}
     start = (m.result or {}).get("start", m.start)
     stages, clock = {}, start
@@ -330,7 +333,7 @@ def run_pycolmap(scene_dir: Path, work: Path, pairs: list[tuple[str, str]], num_
 
 
 def our_config(reconstruct_config) -> dict:
-    """Our pipeline's configuration as its stats.json records it (JSON types), to tell whether a result is current."""
+    """Our pipeline's configuration as the run's record keeps it (JSON types), to tell whether a result is current."""
     from ...pipelines.config import config_dict
 
     return json.loads(json.dumps(config_dict(reconstruct_config), default=str))
@@ -342,8 +345,8 @@ def reusable_baseline(previous: dict | None, work: Path, pairs: list[tuple[str, 
     Same scene settings, same pairs (its pairs file), same pycolmap version: its pipeline is
     deterministic (seeded, one mapping thread) and would give the same model, so only our pipeline reruns.
     """
-    from ...stages.pairs import format_pairs
     from ...runtime import package_versions
+    from ...stages.pairs import format_pairs
 
     if not previous or "pycolmap" not in previous or previous["pycolmap"].get("failure"):
         return None
