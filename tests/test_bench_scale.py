@@ -481,8 +481,8 @@ def test_bench_scale_end_to_end_and_resume(tmp_path, shared):
 def test_retrieval_finds_the_true_neighbours_of_a_generated_street(tmp_path, shared):
     # 40 photos (39 along the street + 1 distractor) at 320 px, SEKD features, the default retrieval.
     from sekd_sfm.bench.scale.run import retrieval_recall
-    from sekd_sfm.stages.extract import extract_features
     from sekd_sfm.features import FeatureConfig
+    from sekd_sfm.stages.extract import extract_features
     from sekd_sfm.stages.retrieval import compute_global_descriptors
 
     scene = tmp_path / "scene"
@@ -531,6 +531,7 @@ def test_pycolmap_run_is_reused_only_for_the_same_scene_pairs_and_version(tmp_pa
     assert reused["registered"] == 7 and reused["model"] == str(work / "model") and reused["reused_from"] == str(work)
     assert reusable_baseline(previous, work, pairs[:1], ScaleConfig()) is None            # other pairs
     assert reusable_baseline(previous, work, pairs, ScaleConfig(spacing=2.0)) is None     # another scene
+    assert reusable_baseline(previous, work, pairs, ScaleConfig(repeats=2)) is None       # repeated structure
     assert reusable_baseline(None, work, pairs, ScaleConfig()) is None
     other_version = {**previous, "settings": {**previous["settings"], "versions": {"pycolmap": "0.0"}}}
     assert reusable_baseline(other_version, work, pairs, ScaleConfig()) is None
@@ -589,3 +590,197 @@ def test_baseline_above_its_mapping_limit_stops_after_verification_and_reports_d
     table = scale_markdown({"results": results, "exponents": {"pycolmap": fitted}})
     last = next(line for line in table.splitlines() if line.startswith("| 40 | pycolmap SIFT |"))
     assert "| 1 | same pairs | same pairs | - | - | - |" in last and last.endswith("(stopped before: map)")
+
+
+# ----------------------------------------------------------------------------- repeated and symmetric structure
+
+def _texture_key(face: Face) -> tuple:
+    """What a face shows: photo region, colour gain and grain (equal keys: a local feature cannot tell them apart)."""
+    return face.texture, tuple(face.crop), face.gain, face.grain
+
+
+def _upright(layout) -> list[Face]:
+    return [face for face in layout.faces if abs(face.normal[2]) < 0.5]
+
+
+def _copies(faces: list[Face]) -> dict[tuple, list[Face]]:
+    groups: dict[tuple, list[Face]] = {}
+    for face in faces:
+        groups.setdefault(_texture_key(face), []).append(face)
+    return groups
+
+
+def _centre(face: Face) -> np.ndarray:
+    return face.corners().mean(0)
+
+
+def _front(face: Face, block) -> bool:
+    """A building's front (within 2 m of the street line), not a side wall reaching into the block."""
+    x, y, _ = _centre(face)
+    return min(block.hx - abs(x), block.hy - abs(y)) < 2
+
+
+def test_assign_shared_textures_gives_each_group_one_region():
+    from sekd_sfm.bench.scale.texturing import assign_shared_textures
+
+    sizes = [(640, 480), (480, 640)]
+    faces = [_wall(0.0, 0.0, 5.0, 2.0, 1.0) for _ in range(6)]
+    for i, face in enumerate(faces):
+        face.gain = (1.0 + i, 1.0, 1.0)
+    representative = assign_shared_textures(faces, [0, 1, 0, 2, 1, 0], sizes, np.random.default_rng(0))
+    assert representative == [0, 1, 0, 3, 1, 0]
+    assert len({_texture_key(faces[i]) for i in (0, 2, 5)}) == 1 and faces[5].gain == (1.0, 1.0, 1.0)  # the first's
+    assert len({(f.texture, f.crop) for f in faces}) == 3  # three groups, three regions
+    # Every group one face: assign_textures, draw for draw.
+    a = [_wall(0.0, 0.0, 5.0, 2.0 + i % 3, 1.0 + i % 2) for i in range(14)]
+    b = [_wall(0.0, 0.0, 5.0, 2.0 + i % 3, 1.0 + i % 2) for i in range(14)]
+    assign_textures(a, sizes, np.random.default_rng(4))
+    assert assign_shared_textures(b, list(range(14)), sizes, np.random.default_rng(4)) == list(range(14))
+    assert [(f.texture, f.crop) for f in a] == [(f.texture, f.crop) for f in b]
+
+
+def test_one_repeat_without_mirror_is_the_scene_as_before(shared):
+    import hashlib
+
+    from sekd_sfm.bench.scale.scene import _config_record
+
+    # Digests of the layouts (faces, textures, cameras) as generated before repeats and mirrors existed: the
+    # default scenes stay the same, draw for draw (on the shared photos; re-pin only if these change).
+    def digest(layout) -> str:
+        faces = [[f.texture, list(f.crop), f.grain, [round(g, 9) for g in f.gain],
+                  [round(float(v), 9) for v in (*f.origin, *f.u, *f.v, f.width, f.height)]] for f in layout.faces]
+        cameras = [[round(float(v), 9) for v in (*c.R.ravel(), *c.t)] for c in layout.cameras]
+        data = json.dumps([faces, cameras, sorted(layout.distractor_slots), [p.name for p in layout.pool]])
+        return hashlib.sha256(data.encode()).hexdigest()[:16]
+
+    block = layout_scene(SceneConfig(num_images=12, image_size=160, seed=3))
+    ring = layout_scene(SceneConfig(num_images=8, image_size=160, hfov_deg=24, layout="ring", seed=2))
+    assert (digest(block), digest(ring)) == ("9f2f191737447f5a", "3dd1970deaea3f49")
+    assert all(len(faces) == 1 for faces in _copies(_upright(block)).values())  # no texture twice
+    record = _config_record(SceneConfig())
+    assert "repeats" not in record and "symmetric" not in record  # earlier scenes stay reusable
+    assert _config_record(SceneConfig(repeats=3, symmetric=True))["repeats"] == 3
+    with pytest.raises(SekdError, match="repeats 9 is outside 1..8"):
+        SceneConfig(repeats=9)
+
+
+def test_repeats_show_each_facade_on_the_other_side_of_the_block(shared):
+    # Two repeats: the street's second half repeats its first, so every building's copy stands on the
+    # opposite side (side 0 <-> 2, 1 <-> 3), facing the other way, the same size.
+    layout = layout_scene(SceneConfig(num_images=36, image_size=96, spacing=6, repeats=2))
+    groups = _copies(_upright(layout))
+    assert max(len(faces) for faces in groups.values()) == 2
+    pairs = [faces for faces in groups.values() if len(faces) == 2]
+    assert len(pairs) >= 0.8 * len(groups)  # side walls at the block's corners have no copy
+    for a, b in pairs:
+        assert np.allclose(a.normal, -b.normal) and (a.width, a.height) == pytest.approx((b.width, b.height))
+        if _front(a, layout.block):
+            assert np.linalg.norm(_centre(a) - _centre(b)) > 20
+    assert len({(f.texture, f.crop) for f in _upright(layout)}) == len(groups)  # a region per group, once
+    ground = [f for f in layout.faces if abs(f.normal[2]) > 0.5]
+    assert len({f.texture for f in ground}) == len(ground)  # the pavement never repeats
+
+
+def test_three_repeats_spread_each_texture_over_three_places(shared):
+    layout = layout_scene(SceneConfig(num_images=40, image_size=96, repeats=3))
+    groups = _copies(_upright(layout))
+    assert max(len(faces) for faces in groups.values()) == 3
+    fronts = [faces for faces in groups.values() if len(faces) == 3 and _front(faces[0], layout.block)]
+    assert len(fronts) >= len(groups) / 3
+    for faces in fronts:
+        assert len({tuple(np.round(f.normal, 6)) for f in faces}) >= 2  # on at least two sides of the block
+        centres = np.array([_centre(f) for f in faces])
+        assert min(np.linalg.norm(centres[i] - centres[j]) for i in range(3) for j in range(i)) > 20
+
+
+def test_symmetric_block_carries_the_long_sides_facades_in_mirror_order(shared):
+    layout = layout_scene(SceneConfig(num_images=40, image_size=96, symmetric=True))
+    keys = {_texture_key(f) for f in _upright(layout)}
+    assert max(len(faces) for faces in _copies(_upright(layout)).values()) == 2
+    # The mirror y -> -y takes every facade onto one with the same texture: side 0's facade at x in [a, b]
+    # faces side 2's at the same x (walked the other way round: mirror order).
+    mirrored = {(tuple(np.round(_centre(f) * [1, -1, 1], 6)), tuple(np.round(f.normal * [1, -1, 1], 6))): f
+                for f in _upright(layout)}
+    for face in _upright(layout):
+        twin = mirrored[(tuple(np.round(_centre(face), 6)), tuple(np.round(face.normal, 6)))]
+        assert _texture_key(twin) == _texture_key(face)
+    side0 = sorted((f for f in _upright(layout) if np.allclose(f.normal, [0, -1, 0]) and _centre(f)[1] > -20),
+                   key=lambda f: _centre(f)[0])
+    side2 = sorted((f for f in _upright(layout) if np.allclose(f.normal, [0, 1, 0]) and _centre(f)[1] < 20),
+                   key=lambda f: -_centre(f)[0])  # in walking order
+    assert [_texture_key(f) for f in side0] == [_texture_key(f) for f in side2][::-1] and len(side0) >= 3
+    assert len(keys) < len(_upright(layout))
+
+
+def _turned(face: Face, T: np.ndarray) -> tuple:
+    M = np.eye(3)
+    M[:2, :2] = T
+    return tuple(np.round(M @ _centre(face), 6)), tuple(np.round(M @ face.normal, 6))
+
+
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_ring_repeats_are_a_temple_of_like_columns(shared, symmetric):
+    layout = layout_scene(SceneConfig(num_images=8, image_size=96, hfov_deg=24, layout="ring", repeats=4,
+                                      symmetric=symmetric))
+    objects = [f for f in layout.faces if f.grain >= 0]
+    at = {_turned(f, np.eye(2)): f for f in objects}
+    quarter = np.array([[0.0, -1.0], [1.0, 0.0]])
+    for face in objects:  # a quarter turn takes every face onto one with the same texture
+        assert _texture_key(at[_turned(face, quarter)]) == _texture_key(face)
+    columns = _copies(objects)
+    assert max(len(faces) for faces in columns.values()) == (8 if symmetric else 4)  # mirrored: both side walls
+    plate = [f for f in layout.faces if f.grain < 0]
+    assert len(plate) == 16 and len({f.texture for f in plate}) == 16  # the plate tells the views apart
+    if symmetric:
+        mirror = np.diag([1.0, -1.0])
+        assert all(_texture_key(at[_turned(face, mirror)]) == _texture_key(face) for face in objects)
+
+
+def test_symmetric_ring_mirrors_its_boxes(shared):
+    layout = layout_scene(SceneConfig(num_images=8, image_size=96, hfov_deg=24, layout="ring", symmetric=True))
+    objects = [f for f in layout.faces if f.grain >= 0]
+    at = {_turned(f, np.eye(2)): f for f in objects}
+    mirror = np.diag([-1.0, 1.0])
+    assert all(_texture_key(at[_turned(face, mirror)]) == _texture_key(face) for face in objects)
+    assert len(_copies(objects)) < len(objects) < 2 * len(_copies(objects)) + 6  # pairs; the boxes on the plane
+
+
+def test_covisibility_of_repeated_facades_stays_geometric(tmp_path, shared):
+    # Photos of the two copies of a facade (opposite sides of the block) show the same texture on different
+    # faces: not co-visible, whatever the matcher may think.
+    config = SceneConfig(num_images=36, image_size=96, spacing=6, repeats=2)
+    generate_scene(tmp_path, config, progress=False)
+    layout = layout_scene(config)
+    names = sorted(read_scene(tmp_path)["cameras"])
+    from sekd_sfm.bench.scale.rendering import candidate_faces
+
+    faces = layout.faces
+    culling = (np.array([f.corners().mean(0) for f in faces]), np.array([0.5 * math.hypot(f.width, f.height) for f in faces]),
+               np.array([f.origin for f in faces]), np.array([f.normal for f in faces]))
+    seen, drawn = [], []  # per photo: the facades filling 2 % of it; every face it shows
+    for camera in layout.cameras:  # as the scene's photos are rendered: faces turned away are not drawn
+        _, face_id = render(camera, faces, layout.textures, candidate_faces(camera, *culling))
+        ids, counts = np.unique(face_id[face_id >= 0], return_counts=True)
+        seen.append({int(i) for i, n in zip(ids, counts) if n > 0.02 * face_id.size and layout.faces[i].grain >= 0})
+        drawn.append(set(ids.tolist()))
+    covisible = read_covisibility(tmp_path, min_overlap=0.0)
+    alike = 0
+    for a in range(len(names)):
+        for b in range(a + 1, len(names)):
+            same_texture = {_texture_key(layout.faces[i]) for i in seen[a]} & {_texture_key(layout.faces[i]) for i in seen[b]}
+            if same_texture and not drawn[a] & drawn[b]:
+                alike += 1
+                assert frozenset((names[a], names[b])) not in covisible
+    assert alike >= 10
+    assert all(drawn[names.index(a)] & drawn[names.index(b)] for a, b in map(sorted, covisible))  # a face in common
+
+
+def test_cli_generates_repeated_and_symmetric_scenes(tmp_path, shared):
+    result = CliRunner().invoke(sekd, ["bench", "scale", "--layout", "ring", "--hfov", "24", "--sizes", "8", "--repeats",
+                                       "3", "--symmetric", "--image-size", "64", "--generate-only", "-o", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    config = read_scene(tmp_path / "n8/scene")["config"]
+    assert config["repeats"] == 3 and config["symmetric"] is True
+    result = CliRunner().invoke(sekd, ["bench", "scale", "--sizes", "8", "--repeats", "9", "--generate-only", "-o",
+                                       str(tmp_path)])
+    assert result.exit_code == 2 and "--repeats" in result.output

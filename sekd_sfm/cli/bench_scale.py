@@ -34,6 +34,17 @@ def _sizes(ctx, param, value: str) -> tuple[int, ...]:
 @click.option("--hfov", "hfov_deg", type=click.FloatRange(min=10, max=120), default=60.0, show_default=True,
               help="Horizontal field of view of the generated photos (deg); 24 at 640 px is a focal length of "
                    "1,500 px (a long lens).")
+@click.option("--repeats", type=click.IntRange(min=1, max=8), default=1, show_default=True,
+              help="Faces per texture (photo region, colour gain and grain): with N > 1 the block's buildings "
+                   "repeat N times around the street (the walk passes the same facades N times, on different "
+                   "sides: N = 2 makes the opposite sides alike, the views from them differing mostly in the "
+                   "pavement), and the ring becomes a round temple of N like columns around a core (photos "
+                   "360/N deg apart alike). Look-alikes that pass geometric verification while being wrong; the "
+                   "ground truth (cameras, co-visibility) stays geometric.")
+@click.option("--symmetric", is_flag=True,
+              help="Mirror the layout: the block's opposite long sides carry the same facades in mirror order "
+                   "(the short sides mirrored about their middle); the ring's boxes mirrored across a vertical "
+                   "plane (with --repeats, every column mirror-symmetric too).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Scene layout, cameras and mapper seed.")
 @click.option("--textures", type=click.Path(file_okay=False, exists=True), default=None,
               help="Folder of photos for the facades and distractors (default: $SEKD_SHARED/data/train/coco).")
@@ -53,8 +64,9 @@ def _sizes(ctx, param, value: str) -> tuple[int, ...]:
 @mapper_type_option
 @mapper_option
 @refine_option
-def scale(sizes, output, image_size, spacing, layout, hfov_deg, seed, textures, no_baseline, baseline_map_max, num_threads,
-          generate_only, baseline_from, weights, max_keypoints, mapper_type, mapper, refine) -> None:
+def scale(sizes, output, image_size, spacing, layout, hfov_deg, repeats, symmetric, seed, textures, no_baseline,
+          baseline_map_max, num_threads, generate_only, baseline_from, weights, max_keypoints, mapper_type, mapper,
+          refine) -> None:
     """Our pipeline and pycolmap's SIFT pipeline on generated scenes of growing size.
 
     \b
@@ -62,7 +74,8 @@ def scale(sizes, output, image_size, spacing, layout, hfov_deg, seed, textures, 
     around it (one photo every --spacing m), with known cameras, ground-truth co-visibility,
     lighting changes and ~3% unrelated distractor photos; with --layout ring, a few textured
     boxes photographed from N cameras on a circle around them (a turntable series; --hfov 24
-    is a long lens). Per size and stage (extract, pairs, match, refine, import, verify, map):
+    is a long lens). --repeats and --symmetric give the scenes repeated or mirrored structure
+    (look-alike facades far apart). Per size and stage (extract, pairs, match, refine, import, verify, map):
     wall time, peak RSS and bytes written; per pipeline: registered photos, registered
     distractors, models, pose AUC@5 and median errors against the true cameras; then the
     growth exponent of each stage. Our pipeline runs with `sekd reconstruct`'s defaults unless
@@ -79,6 +92,9 @@ def scale(sizes, output, image_size, spacing, layout, hfov_deg, seed, textures, 
       sekd bench scale --sizes 1000 --generate-only -o out/scale
       sekd bench scale --sizes 250,500 -o out/hier --baseline-from out/scale --mapper-type hierarchical
       sekd bench scale --layout ring --hfov 24 --sizes 47 -o out/ring  # a long lens around an object
+      sekd bench scale --layout ring --hfov 24 --sizes 24 --repeats 4 -o out/temple  # 4 like columns
+      sekd bench scale --sizes 100 --repeats 2 -o out/alike     # opposite sides of the block alike
+      sekd bench scale --sizes 100 --symmetric -o out/mirror    # opposite sides in mirror order
     """
     import json
 
@@ -89,7 +105,7 @@ def scale(sizes, output, image_size, spacing, layout, hfov_deg, seed, textures, 
         for size in sizes:
             path = generate_scene(output / f"n{size}" / "scene", SceneConfig(
                 num_images=size, image_size=image_size, spacing=spacing, seed=seed, textures=textures, layout=layout,
-                hfov_deg=hfov_deg))
+                hfov_deg=hfov_deg, repeats=repeats, symmetric=symmetric))
             seconds = json.loads(path.read_text())["generation_s"]
             click.echo(f"n={size}: {path.parent} ({seconds:.1f} s, {size / max(seconds, 1e-9):.1f} images/s)")
         return
@@ -105,7 +121,7 @@ def scale(sizes, output, image_size, spacing, layout, hfov_deg, seed, textures, 
     if max_keypoints:
         reconstruct_config.features.max_keypoints = max_keypoints
     config = ScaleConfig(sizes=sizes, image_size=image_size, spacing=spacing, layout=layout, hfov_deg=hfov_deg,
-                         seed=seed, baseline=not no_baseline,
+                         repeats=repeats, symmetric=symmetric, seed=seed, baseline=not no_baseline,
                          num_threads=num_threads, textures=textures,
                          baseline_from=str(baseline_from) if baseline_from else None,
                          baseline_map_max=baseline_map_max or None)

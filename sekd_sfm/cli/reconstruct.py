@@ -125,10 +125,18 @@ verification_option = click.option(
          "(repeatable; `--verification help` lists them).")
 
 
+view_graph_option = click.option(
+    "--view-graph/--no-view-graph", default=True, show_default=True,
+    help="Before mapping, drop the verified pairs whose relative rotation disagrees with the rest of the view graph "
+         "(by robust rotation averaging, the cameras' focal lengths first estimated from the pairs where EXIF gives "
+         "none): on repeated or symmetric structure, photos of different places can pass verification with "
+         "look-alike matches and fold or split the model. stats.json view_graph lists what was dropped.")
+
+
 def mapping_options(*, verification: bool = True) -> Decorator:
     """The group ``mapping``: --mapper-type, --mapper, --refine, --verification (if ``verification``) and --seed,
     how matches become a model."""
-    declarations = [mapper_type_option, mapper_option, refine_option, final_filter_option]
+    declarations = [mapper_type_option, mapper_option, refine_option, view_graph_option, final_filter_option]
     declarations += [verification_option] if verification else []
     return option_group("mapping", *declarations, seed_option)
 
@@ -158,6 +166,7 @@ def reconstruct_config(extraction: OptionValues, matching: OptionValues, camera:
                                masks=str(Path(masks).resolve()) if masks else None)
     config.refine.enabled = mapping["refine"]
     config.final_filter = mapping.get("final_filter", True)
+    config.view_graph.enabled = mapping.get("view_graph", True)
     if conf:  # hloc-style names, so the files of several presets coexist in OUTPUT
         config.file_names = output_names(conf, "pairs")
     return config, given

@@ -16,6 +16,7 @@ from ..stages.georef import GpsConfig
 from ..stages.match import MatchConfig
 from ..stages.pairs import PairsConfig
 from ..stages.refine import RefineConfig
+from ..stages.viewgraph import ViewGraphConfig
 
 #: Long side (px) images are reduced to for reconstruction, as hloc does: SEKD's cost grows with
 #: the pixels, and a 24 MP photo at full size costs ~40 s of CPU to extract.
@@ -45,6 +46,9 @@ class ReconstructConfig:
     #: Keypoint refinement between matching and the database (``refine.py``): on the generated
     #: 250-photo block pose AUC@5 0.971 -> 0.980, reprojection error 0.39 -> 0.22 px.
     refine: RefineConfig = field(default_factory=RefineConfig)
+    #: Between verification and mapping, drop the verified pairs whose relative rotation disagrees with the rest
+    #: of the view graph (``stages.viewgraph``: wrong pairs on repeated or symmetric structure).
+    view_graph: ViewGraphConfig = field(default_factory=ViewGraphConfig)
     #: After mapping, drop each model's outlying observations (beyond max(0.5 px, 3 robust sigma)) and adjust it
     #: again (``mapper_worker.final_filter``): pose AUC@5 on the generated 250-photo block 0.972 -> 0.993.
     final_filter: bool = True
@@ -87,8 +91,8 @@ def typed(cls: type, data: dict) -> Any:
 
 def config_from_dict(data: dict, weights: str | None = None) -> ReconstructConfig:
     """The ReconstructConfig a record's ``config`` describes; ``weights``: the SEKD network's file, which records
-    leave out. A record made before the final filter existed has none (``final_filter`` False: its model was not
-    filtered, and its extensions are not either)."""
-    config = typed(ReconstructConfig, {"final_filter": False, **data})
+    leave out. A record made before the final filter or the view-graph check existed has neither (off: its model
+    was made without them, and its extensions are too)."""
+    config = typed(ReconstructConfig, {"final_filter": False, "view_graph": {"enabled": False}, **data})
     config.features.weights = weights
     return config

@@ -46,6 +46,7 @@ from ..stages.match import match_features
 from ..stages.pairs import make_pairs, read_pairs, write_pairs
 from ..stages.principal_point import PrincipalPointPlan, plan_principal_point
 from ..stages.refine import refine_keypoints, refine_summary
+from ..stages.viewgraph import check_view_graph
 from . import record
 from .config import DEFAULT_MAPPER, DEFAULT_RESIZE_MAX, ReconstructConfig, config_dict
 from .extend import ExtendOptions, extend_model
@@ -268,6 +269,12 @@ def match_report(run: Run, s: Reconstruction) -> Reconstruction:
     return s
 
 
+def view_graph(run: Run, s: Reconstruction) -> Reconstruction:
+    """The verified pairs whose rotation disagrees with the rest of the view graph dropped (``stages.viewgraph``)."""
+    s.stats["view_graph"] = check_view_graph(s.database, min_num_matches(s.options), s.config.view_graph)
+    return s
+
+
 def mapping(run: Run, s: Reconstruction) -> Reconstruction:
     """The models (largest first), filtered after mapping, the principal point settled."""
     filtered: list = []
@@ -299,6 +306,7 @@ RECONSTRUCT: tuple[Step, ...] = (
     Step("principal point", principal_point, timed=False),
     Step("verification", verification),
     Step("match report", match_report, timed=False),
+    Step("view graph", view_graph, when=lambda s: s.config.view_graph.enabled),
     Step("mapping", mapping),
     Step("georeference", georeferencing, timed=False),
 )

@@ -170,6 +170,12 @@ def format_summary(stats: dict) -> str:
     if refine:
         lines.append(f"  refined keypoints  {refine['aligned']} of {refine['matches']} matches aligned, "
                      f"median shift {refine['median_shift_px']:.2f} px")
+    graph = stats.get("view_graph")
+    if graph and graph.get("skipped"):
+        lines.append(f"  view graph         not checked: {graph['skipped']} (--camera-params makes it checkable)")
+    elif graph and graph.get("pairs"):
+        lines.append(f"  view graph         {graph['dropped']} of {graph['pairs']} verified pairs dropped: their rotation "
+                     f"disagrees with the others' by more than {graph['threshold_deg']:.1f} deg")
     filtered = stats.get("final_filter")
     if filtered and "threshold_px" in filtered:
         lines.append(f"  final filter       {filtered['removed_observations']} of {filtered['observations']} observations "

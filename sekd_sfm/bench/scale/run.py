@@ -61,6 +61,9 @@ class ScaleConfig:
     #: The scenes' layout (``scene.SceneConfig.layout``): ``block`` or ``ring``, and the cameras' field of view.
     layout: str = "block"
     hfov_deg: float = 60.0
+    #: Repeated / mirrored structure of the scenes (``scene.SceneConfig.repeats`` / ``symmetric``).
+    repeats: int = 1
+    symmetric: bool = False
     spacing: float = 1.5
     seed: int = 0
     baseline: bool = True
@@ -353,6 +356,7 @@ def reusable_baseline(previous: dict | None, work: Path, pairs: list[tuple[str, 
     settings = previous.get("settings", {})
     same = all(settings.get(k) == getattr(config, k) for k in ("image_size", "spacing", "seed", "textures", "min_overlap"))
     same = same and (settings.get("layout", "block"), settings.get("hfov_deg", 60.0)) == (config.layout, config.hfov_deg)
+    same = same and (settings.get("repeats", 1), settings.get("symmetric", False)) == (config.repeats, config.symmetric)
     versions = settings.get("versions", {})
     if not same or versions.get("pycolmap") != package_versions().get("pycolmap"):
         return None
@@ -398,7 +402,7 @@ def run_size(out: Path, size: int, config: ScaleConfig, reconstruct_config, prev
     scene_dir = out / "scene"
     scene_config = SceneConfig(num_images=size, image_size=config.image_size, spacing=config.spacing,
                                seed=config.seed, textures=config.textures, layout=config.layout,
-                               hfov_deg=config.hfov_deg)
+                               hfov_deg=config.hfov_deg, repeats=config.repeats, symmetric=config.symmetric)
     other = Path(config.baseline_from) / out.name if config.baseline_from else None
     if other is not None and not scene_dir.exists():
         link_scene(other / "scene", scene_dir, scene_config)

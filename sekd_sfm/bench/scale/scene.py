@@ -12,6 +12,13 @@ textured, so no photo of the walk sees only sky or a black screen) with its own 
 gain, and every pavement tile its own generated texture (``pavement_texture``), so no two
 faces share content: repeated content (even mirrored: symmetric structures match across the
 mirror) would hand retrieval and matching look-alikes that no real street has this often.
+Unless asked for: ``SceneConfig.repeats`` N > 1 repeats the buildings (front, side walls: photo
+region, gain and grain) N times around the street, the copies on other sides of the block, and
+``symmetric`` mirrors the street across the block's long axis (opposite long sides carry the same
+facades in mirror order); on the ring, N like columns around a core, or mirrored boxes
+(``layout.py``). Look-alikes that pass geometric verification while being wrong: the test of
+repeated and symmetric structure. The pavement stays unique, the ground truth geometric (a texture
+seen on two faces makes no pair co-visible), and scene.json counts the copies (``repeated``).
 Every facade also carries a surface grain of its own (``grain_texture``, ``GRAIN_TEXELS``
 per metre, added to the photo by ``add_grain``): the fixed pool of photos cannot texture a long walk at
 the camera's resolution (at 1,000 photos the median facade gets 22 photo texels per metre,
@@ -85,7 +92,9 @@ from .layout import (
     Ring,
     SceneConfig,
     build_faces,
+    build_repeated_faces,
     build_ring_faces,
+    build_symmetric_ring_faces,
     make_cameras,
     make_ring_cameras,
 )
@@ -98,6 +107,7 @@ from .texturing import (
     Textures,
     add_grain,
     apparent_size,
+    assign_shared_textures,
     assign_textures,
     grain_texture,
     pavement_texture,
@@ -108,7 +118,8 @@ from .texturing import (
 __all__ = [
     "FORMAT", "GRAIN_SCALE", "GRAIN_TEXELS", "LAYOUTS", "MATCHABLE_ANGLE_DEG", "MIN_TEXTURED", "NEAR",
     "PAVEMENT_TEXELS", "Block", "Camera", "Face", "Layout", "Ring", "SceneConfig", "SurfaceView", "Textures",
-    "add_grain", "apparent_size", "assign_textures", "build_faces", "build_ring_faces", "covisibility_counts",
+    "add_grain", "apparent_size", "assign_shared_textures", "assign_textures", "build_faces", "build_repeated_faces",
+    "build_ring_faces", "build_symmetric_ring_faces", "covisibility_counts",
     "generate_scene", "grain_texture", "layout_scene", "make_cameras", "make_ring_cameras", "pair_ray_angles",
     "pavement_texture", "photo_paths", "pixel_overlap", "read_covisibility", "read_scene", "render", "render_layers",
     "texture_cells", "textured_fraction", "write_covisibility",
@@ -168,6 +179,15 @@ class Layout:
     names: list[str]                # every photo's name, scene photos and distractors
     distractor_slots: set[int]      # positions of the distractors in ``names``
     apparent: np.ndarray            # per face, ``apparent_size`` (sr): how much of a view it can fill
+    #: Per face, the face whose texture it shows (itself unless ``SceneConfig.repeats`` / ``symmetric`` made it a copy).
+    shown: list[int] | None = None
+
+    def repeated(self) -> dict:
+        """How the faces share textures: photo-textured faces, their distinct textures, the most faces on one."""
+        shown = self.shown or list(range(len(self.faces)))
+        photo = [i for i, face in enumerate(self.faces) if self.textures.paths[face.texture] is not None]
+        counts = np.bincount([shown[i] for i in photo])
+        return {"faces": len(photo), "textures": int((counts > 0).sum()), "most_copies": int(counts.max(initial=0))}
 
     def texture_density(self) -> dict:
         """Texels per metre of the facades' photo textures, quantiles weighted by apparent size, of
@@ -205,24 +225,36 @@ def layout_scene(config: SceneConfig) -> Layout:
     block = Block(max(MIN_PERIMETER, num_scene * config.spacing), config.distance)
     cameras = make_cameras(block, config, num_scene)
     cells = [texture_cells(textures.level(i, 0)) for i in range(len(texture_paths))]
-    faces = build_faces(block, rng, len(texture_paths), textures.sizes)
+    if config.repeats == 1 and not config.symmetric:
+        faces = build_faces(block, rng, len(texture_paths), textures.sizes)
+        groups = list(range(len(faces)))
+    else:
+        faces, groups = build_repeated_faces(block, rng, len(texture_paths), textures.sizes, config.repeats,
+                                             config.symmetric)
     centers = np.array([camera.center for camera in cameras[::4]])
     apparent = apparent_size(faces, centers)
     ground = [abs(face.normal[2]) > 0.5 for face in faces]
     upright = [i for i, flat in enumerate(ground) if not flat]  # facades and towers: photos
-    assign_textures([faces[i] for i in upright], textures.sizes[:len(texture_paths)],
-                    np.random.default_rng([config.seed, 3]), cells, priority=apparent[upright])
+    shared = assign_shared_textures([faces[i] for i in upright], [groups[i] for i in upright],
+                                    textures.sizes[:len(texture_paths)], np.random.default_rng([config.seed, 3]), cells,
+                                    priority=apparent[upright])
     for i in (i for i, flat in enumerate(ground) if flat):  # pavement: a generated texture of its own
         face = faces[i]
         width, height = round(face.width * PAVEMENT_TEXELS), round(face.height * PAVEMENT_TEXELS)
         face.texture, face.crop = textures.add_generated("pavement", width, height, (config.seed, 4, i)), (0, 0, width, height)
-    for i in upright:  # facades and towers: a surface grain of their own, over the photo
+    for i, lead in zip(upright, shared):  # facades and towers: a surface grain of their own (their group's), over the photo
         face = faces[i]
+        if upright[lead] != i:
+            face.grain = faces[upright[lead]].grain
+            continue
         size = (max(2, round(face.width * GRAIN_TEXELS)), max(2, round(face.height * GRAIN_TEXELS)))
         face.grain = textures.add_generated("grain", *size, (config.seed, 5, i))
     distractor_slots = set(rng.choice(config.num_images, num_distractors, replace=False).tolist())
     names = [f"{i:05d}.jpg" for i in range(config.num_images)]
-    return Layout(block, faces, cameras, textures, pool, names, distractor_slots, apparent)
+    shown = list(range(len(faces)))
+    for i, lead in zip(upright, shared):
+        shown[i] = upright[lead]
+    return Layout(block, faces, cameras, textures, pool, names, distractor_slots, apparent, shown)
 
 
 def _layout_ring(config: SceneConfig, rng: np.random.Generator, textures: Textures, texture_paths: list[Path],
@@ -236,21 +268,28 @@ def _layout_ring(config: SceneConfig, rng: np.random.Generator, textures: Textur
     """
     ring = Ring(config)
     cameras = make_ring_cameras(ring, config, config.num_images)
-    objects, plate = build_ring_faces(rng, len(texture_paths), textures.sizes)
+    if config.repeats == 1 and not config.symmetric:
+        objects, plate = build_ring_faces(rng, len(texture_paths), textures.sizes)
+        groups = list(range(len(objects)))
+    else:
+        objects, plate, groups = build_symmetric_ring_faces(rng, len(texture_paths), textures.sizes, config.repeats,
+                                                            config.symmetric)
     faces = objects + plate
     cells = [texture_cells(textures.level(i, 0)) for i in range(len(texture_paths))]
     apparent = apparent_size(faces, np.array([camera.center for camera in cameras]))
-    assign_textures(objects, textures.sizes[:len(texture_paths)], np.random.default_rng([config.seed, 3]), cells,
-                    priority=apparent[:len(objects)])
+    shared = assign_shared_textures(objects, groups, textures.sizes[:len(texture_paths)],
+                                    np.random.default_rng([config.seed, 3]), cells, priority=apparent[:len(objects)])
     texels = ring.texels_per_metre()
     for i, face in enumerate(faces):
         size = (max(2, round(face.width * texels)), max(2, round(face.height * texels)))
         if i >= len(objects):  # plate tiles: a pavement texture of their own
             face.texture, face.crop = textures.add_generated("pavement", *size, (config.seed, 4, i)), (0, 0, *size)
+        elif shared[i] != i:  # a copy: its group's grain
+            face.grain = faces[shared[i]].grain
         else:
             face.grain = textures.add_generated("grain", *size, (config.seed, 5, i))
     names = [f"{i:05d}.jpg" for i in range(config.num_images)]
-    return Layout(ring, faces, cameras, textures, pool, names, set(), apparent)
+    return Layout(ring, faces, cameras, textures, pool, names, set(), apparent, shared + list(range(len(objects), len(faces))))
 
 
 def generate_scene(output_dir: str | Path, config: SceneConfig, progress: bool = True) -> Path:
@@ -284,6 +323,7 @@ def generate_scene(output_dir: str | Path, config: SceneConfig, progress: bool =
               "texture_density": layout.texture_density(),
               "block_m": [2 * block.hx, 2 * block.hy], "path_perimeter_m": block.perimeter,
               **({"ring_distance_m": round(block.distance, 3)} if config.layout == "ring" else {}),
+              **({"repeated": layout.repeated()} if config.repeats > 1 or config.symmetric else {}),
               "pixel_convention": "OpenCV (integer = pixel centre); COLMAP principal point = ours + 0.5",
               "distractors": sorted(names[i] for i in distractor_slots),
               "distractor_sources": {names[i]: pool[j].name for j, i in enumerate(sorted(distractor_slots))},
@@ -303,6 +343,10 @@ def _config_record(config: SceneConfig) -> dict:
     data.pop("textures")  # a local path; the photos are recorded by name
     if data["layout"] == "block":
         data.pop("layout")  # the block's record as before the ring existed: its scenes stay reusable
+    if data["repeats"] == 1:
+        data.pop("repeats")  # likewise for scenes from before repeated and symmetric structure
+    if not data["symmetric"]:
+        data.pop("symmetric")
     return data
 
 

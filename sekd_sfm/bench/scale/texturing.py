@@ -1,6 +1,6 @@
 """The scene's textures (overview in ``scene.py``): a photo region for every facade
-(``assign_textures``), generated pavement and facade grain, and the texture pyramids the renderer
-draws from (``Textures``)."""
+(``assign_textures``; one for every group of faces that repeat a texture: ``assign_shared_textures``),
+generated pavement and facade grain, and the texture pyramids the renderer draws from (``Textures``)."""
 from __future__ import annotations
 
 import logging
@@ -129,6 +129,33 @@ def assign_textures(faces: list[Face], sizes: list[tuple[int, int]], rng: np.ran
                 face.texture, face.crop = photo, crop
                 break
     return faces
+
+
+def assign_shared_textures(faces: list[Face], groups: list[int], sizes: list[tuple[int, int]],
+                           rng: np.random.Generator, cells: list[np.ndarray] | None = None,
+                           priority: np.ndarray | None = None) -> list[int]:
+    """``assign_textures`` for faces in groups that share one texture, in place; returns the representative
+    (first face) of each face's group.
+
+    Faces with equal ``groups`` entries show the same photo region with the same colour gain (their
+    grain is the caller's to share): the first face of each group takes a region as
+    ``assign_textures`` gives it (at the group's largest ``priority``, default area), the others
+    copy it. A group is one region, so the photos go round as many groups, not faces. With every
+    group a single face this is ``assign_textures``, draw for draw.
+    """
+    if priority is None:
+        priority = np.array([face.width * face.height for face in faces])
+    first: dict[int, int] = {}
+    best: dict[int, float] = {}
+    for i, group in enumerate(groups):
+        first.setdefault(group, i)
+        best[group] = max(best.get(group, -math.inf), float(priority[i]))
+    leaders = sorted(set(first.values()))
+    assign_textures([faces[i] for i in leaders], sizes, rng, cells, priority=np.array([best[groups[i]] for i in leaders]))
+    representative = [first[group] for group in groups]
+    for face, lead in zip(faces, representative):
+        face.texture, face.crop, face.gain = faces[lead].texture, faces[lead].crop, faces[lead].gain
+    return representative
 
 
 def _crop_in_tile(face: Face, size: tuple[int, int], grid: int, row: int, col: int, rng: np.random.Generator,
