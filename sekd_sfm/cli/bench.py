@@ -246,3 +246,7 @@ bench.add_command(bench_scale.scale)
 from . import bench_maps
 
 bench.add_command(bench_maps.maps)
+
+from . import bench_pairs
+
+bench.add_command(bench_pairs.pairs)
