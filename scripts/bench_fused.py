@@ -19,11 +19,16 @@ from pathlib import Path
 
 import numpy as np
 
-from sekd_sfm.model import fused
 from sekd_sfm.bench.speed import agreement, load_bench_images
+from sekd_sfm.model import fused
 from sekd_sfm.model.inference import SEKDConfig, SEKDExtractor
-from sekd_sfm.runtime import cpu_description, cpu_has_fast_bf16, set_num_threads, shared_dir
 from sekd_sfm.model.weights import EMBEDDED_MODELS, load_model
+from sekd_sfm.runtime import (
+    cpu_description,
+    cpu_has_fast_bf16,
+    set_num_threads,
+    shared_dir,
+)
 
 
 def extractor(net, precision: str, use_fused: bool) -> SEKDExtractor:

@@ -20,8 +20,8 @@ from pathlib import Path
 
 from sekd_sfm.bench.speed import SiftExtractor, load_bench_images, time_method
 from sekd_sfm.model.inference import SEKDConfig, SEKDExtractor
-from sekd_sfm.runtime import cpu_description, set_num_threads, shared_dir
 from sekd_sfm.model.weights import EMBEDDED_MODELS, load_model
+from sekd_sfm.runtime import cpu_description, set_num_threads, shared_dir
 
 
 def main() -> None:

@@ -28,9 +28,7 @@ import h5py
 import numpy as np
 
 from sekd_sfm.files import features as ff
-
-from sekd_sfm.files import partstore
-from sekd_sfm.files import shards
+from sekd_sfm.files import partstore, shards
 
 
 def _drop_cache(keep: bool) -> str:

@@ -30,7 +30,12 @@ from sekd_sfm.model.network import SEKDNet, use_fast_deconv
 from sekd_sfm.runtime import allocator_tuned, cpu_description
 from sekd_sfm.train.distributed import Context
 from sekd_sfm.train.model import frozen_copy
-from sekd_sfm.train.steps import PairForward, autocast_dtype, run_epoch, training_memory_format
+from sekd_sfm.train.steps import (
+    PairForward,
+    autocast_dtype,
+    run_epoch,
+    training_memory_format,
+)
 
 T = TypeVar("T")
 

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import torch
 
+from sekd_sfm.features import FeatureConfig
 from sekd_sfm.files import features as ff
 from sekd_sfm.stages.extract import extract_features
-from sekd_sfm.features import FeatureConfig
 from sekd_sfm.stages.match import MatchConfig, match_features
 from sekd_sfm.stages.pairs import exhaustive_pairs, unique_pairs, write_pairs
 from sekd_sfm.stages.retrieval import (

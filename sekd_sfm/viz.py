@@ -192,7 +192,13 @@ def draw_model(reconstruction, title: str, max_points: int = MODEL_PNG_MAX_POINT
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from .stages.export import frustum_lines, model_points, scene_size, view_frame, world_from_cam
+    from .stages.export import (
+        frustum_lines,
+        model_points,
+        scene_size,
+        view_frame,
+        world_from_cam,
+    )
 
     xyz, rgb, total = model_points(reconstruction, max_points)
     centres = np.array([world_from_cam(reconstruction.image(i))[1]

@@ -7,7 +7,12 @@ import pytest
 from click.testing import CliRunner
 from conftest import GRAFFITI, SEKD_WEIGHTS
 
-from sekd_sfm.bench.homography import HomographyConfig, evaluate_pair, run_homography_benchmark, summarise
+from sekd_sfm.bench.homography import (
+    HomographyConfig,
+    evaluate_pair,
+    run_homography_benchmark,
+    summarise,
+)
 from sekd_sfm.bench.methods import Method, parse_method
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError

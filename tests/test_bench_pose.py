@@ -5,7 +5,12 @@ import numpy as np
 import pytest
 
 from sekd_sfm.bench.methods import parse_method
-from sekd_sfm.bench.pose import PoseConfig, estimate_relative_pose, pose_errors, run_pose_benchmark
+from sekd_sfm.bench.pose import (
+    PoseConfig,
+    estimate_relative_pose,
+    pose_errors,
+    run_pose_benchmark,
+)
 from sekd_sfm.errors import SekdError
 from sekd_sfm.evaluation.datasets import read_pose_scene
 

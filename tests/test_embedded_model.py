@@ -9,7 +9,13 @@ from conftest import GRAFFITI, ROOT
 
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.model.weights import DEFAULT_MODEL, EMBEDDED_MODEL, EMBEDDED_MODELS, file_sha256, load_model
+from sekd_sfm.model.weights import (
+    DEFAULT_MODEL,
+    EMBEDDED_MODEL,
+    EMBEDDED_MODELS,
+    file_sha256,
+    load_model,
+)
 from sekd_sfm.train import ship
 
 OWN = EMBEDDED_MODELS["own"]

@@ -16,11 +16,11 @@ from conftest import SEKD_WEIGHTS
 
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import partstore
 from sekd_sfm.model.inference import SEKDConfig
+from sekd_sfm.stages.extract import extract_features
 
 
 def textured(seed: int, shape=(120, 160)) -> np.ndarray:

@@ -15,11 +15,11 @@ from test_extract import write_images
 
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import matches as mf
 from sekd_sfm.files import partstore
+from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.stages.match import MatchConfig, match_features
 from sekd_sfm.stages.pairs import write_pairs
 

@@ -186,8 +186,8 @@ def test_feature_file_records_how_the_network_ran(tmp_path, monkeypatch, switch,
     import cv2
     import h5py
 
-    from sekd_sfm.stages.extract import extract_features
     from sekd_sfm.features import FeatureConfig
+    from sekd_sfm.stages.extract import extract_features
 
     photos = tmp_path / "photos"
     photos.mkdir()

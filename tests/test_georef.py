@@ -14,7 +14,6 @@ from click.testing import CliRunner
 from sekd_sfm.bench.maps.georef import DEFAULT_ORIGIN, gps_copy, random_rotation
 from sekd_sfm.evaluation.strecha import read_cameras
 from sekd_sfm.files.gps import GPSPosition, read_gps, write_gps
-from sekd_sfm.stages.pairs import PairsConfig, gps_pairs, make_pairs
 from sekd_sfm.stages.georef import (
     GpsConfig,
     camera_centres,
@@ -24,6 +23,7 @@ from sekd_sfm.stages.georef import (
     plan_gps,
     robust_similarity,
 )
+from sekd_sfm.stages.pairs import PairsConfig, gps_pairs, make_pairs
 
 pycolmap = pytest.importorskip("pycolmap")
 FOUNTAIN = "data/sfm/fountain-P11"

@@ -21,7 +21,13 @@ from sekd_sfm.errors import SekdError
 from sekd_sfm.failures import explain
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import partstore
-from sekd_sfm.files.images import ImageReadError, image_size, load_scaled, reduction_factor, to_original_pixels
+from sekd_sfm.files.images import (
+    ImageReadError,
+    image_size,
+    load_scaled,
+    reduction_factor,
+    to_original_pixels,
+)
 from sekd_sfm.runtime import resolve_device, set_num_threads
 
 

@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 
 from sekd_sfm.errors import SekdError
-from sekd_sfm.files.images import ImageReadError, list_images, read_image, resize_max_side, to_original_pixels
+from sekd_sfm.files.images import (
+    ImageReadError,
+    list_images,
+    read_image,
+    resize_max_side,
+    to_original_pixels,
+)
 
 
 def test_list_images_recursive_any_case_unicode_and_spaces(tmp_path):

@@ -17,7 +17,12 @@ from sekd_sfm.errors import SekdError
 from sekd_sfm.model.inference import FastSEKD, SEKDConfig, SEKDExtractor
 from sekd_sfm.model.lite import SEKDLiteNet, build_lite
 from sekd_sfm.model.network import SEKDNet
-from sekd_sfm.model.weights import EMBEDDED_MODELS, file_sha256, load_model, save_checkpoint
+from sekd_sfm.model.weights import (
+    EMBEDDED_MODELS,
+    file_sha256,
+    load_model,
+    save_checkpoint,
+)
 from sekd_sfm.train import distill as distill_module
 from sekd_sfm.train.distill import DistillConfig, distill
 from sekd_sfm.train.model import initial_network

@@ -24,9 +24,9 @@ from sekd_sfm.bench.maps.localize import (
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.evaluation.strecha import read_cameras
 from sekd_sfm.features import FeatureConfig
-from sekd_sfm.stages.pairs import PairsConfig
 from sekd_sfm.pipelines.localize import log_path
 from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
+from sekd_sfm.stages.pairs import PairsConfig
 
 pycolmap = pytest.importorskip("pycolmap")
 

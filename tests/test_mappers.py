@@ -22,9 +22,15 @@ from test_reconstruct import (
 
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.stages.colmap import require_pycolmap
-from sekd_sfm.stages.mapping import MAPPER_TYPES, default_options, mapper_options, resolve_mapper_type, run_mapper
 from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
+from sekd_sfm.stages.colmap import require_pycolmap
+from sekd_sfm.stages.mapping import (
+    MAPPER_TYPES,
+    default_options,
+    mapper_options,
+    resolve_mapper_type,
+    run_mapper,
+)
 
 pycolmap = require_pycolmap()
 

@@ -15,13 +15,13 @@ from conftest import SEKD_WEIGHTS
 
 import sekd_sfm.stages.extract as ex
 from sekd_sfm.cli.main import sekd
-from sekd_sfm.stages.extract import ExtractWorker, extract_features
 from sekd_sfm.features import FeatureConfig
 from sekd_sfm.features.peers import PEER_WEIGHTS
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import shards
 from sekd_sfm.files.images import image_size, read_mask, scale_mask
 from sekd_sfm.model.inference import SEKDConfig
+from sekd_sfm.stages.extract import ExtractWorker, extract_features
 from sekd_sfm.stages.retrieval import global_path
 
 PHOTOS = ("0000.jpg", "0004.jpg", "0008.jpg")  # fountain-P11, 3072 x 2048, extracted at 320 px: fast

@@ -27,8 +27,8 @@ from click.testing import CliRunner
 from conftest import SHARED
 
 from sekd_sfm.cli.main import sekd
-from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.features import FeatureConfig
+from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.stages.match import match_features
 
 COCO = SHARED / "data/train/coco"
@@ -499,12 +499,17 @@ def test_workers_send_back_only_keys(local_run, tmp_path):
     import torch
 
     from sekd_sfm.execution.ray_run import _StageActor
-    from sekd_sfm.stages.extract import ExtractWorker, describe_config, worker_config
     from sekd_sfm.features import build_extractor
     from sekd_sfm.files import features as ff
     from sekd_sfm.files import matches as mf
     from sekd_sfm.files import partstore
-    from sekd_sfm.stages.match import MatchConfig, MatchWorker, batches, check_feature_file
+    from sekd_sfm.stages.extract import ExtractWorker, describe_config, worker_config
+    from sekd_sfm.stages.match import (
+        MatchConfig,
+        MatchWorker,
+        batches,
+        check_feature_file,
+    )
     from sekd_sfm.stages.match import describe_config as describe_match
     from sekd_sfm.stages.pairs import read_pairs
 
@@ -648,8 +653,8 @@ def test_worker_skips_the_images_the_driver_claimed(local_run, tmp_path):
     import torch
 
     from sekd_sfm.execution.ray_run import BY_DRIVER, _claims_path, _StageActor
-    from sekd_sfm.stages.extract import ExtractWorker, describe_config, worker_config
     from sekd_sfm.features import build_extractor
+    from sekd_sfm.stages.extract import ExtractWorker, describe_config, worker_config
 
     images, _, _, _ = local_run
     config, threads = FeatureConfig(resize_max=160, max_keypoints=300), torch.get_num_threads()

@@ -10,14 +10,14 @@ from click.testing import CliRunner
 from sekd_sfm.bench.strecha import rotation_angle_deg
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
-from sekd_sfm.stages.extract import describe_config
 from sekd_sfm.features import FeatureConfig, build_extractor
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import partstore
+from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
 from sekd_sfm.stages.colmap import open_database, require_pycolmap, set_options
 from sekd_sfm.stages.database import CameraConfig, parse_camera_params
+from sekd_sfm.stages.extract import describe_config
 from sekd_sfm.stages.mapping import mapper_options, run_mapper
-from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
 from sekd_sfm.stages.principal_point import plan_principal_point
 
 pycolmap = require_pycolmap()

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from sekd_sfm.errors import SekdError
-from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.features import FeatureConfig
+from sekd_sfm.stages.extract import extract_features
 from sekd_sfm.stages.match import MatchConfig, match_features
 from sekd_sfm.stages.refine import (
     AlignImage,

@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from sekd_sfm.bench.strecha import angle_between_deg, read_cameras, relative_pose, rotation_angle_deg
+from sekd_sfm.bench.strecha import (
+    angle_between_deg,
+    read_cameras,
+    relative_pose,
+    rotation_angle_deg,
+)
 from sekd_sfm.cli.main import sekd
 
 PAIR = ("0004.jpg", "0006.jpg")

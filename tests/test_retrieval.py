@@ -9,11 +9,11 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from sekd_sfm.stages import retrieval
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.errors import SekdError
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import partstore
+from sekd_sfm.stages import retrieval
 from sekd_sfm.stages.pairs import PairsConfig, make_pairs, read_pairs
 from sekd_sfm.stages.retrieval import (
     RetrievalConfig,
@@ -274,8 +274,8 @@ def mixed_collection(shared, folder, distractors=30):
 @pytest.mark.slow
 def test_recall_on_real_scenes_low_resolution(shared, tmp_path):
     """51 photos of 7 scenes + 30 distractors, SIFT at 320 px: same-scene neighbours are retrieved."""
-    from sekd_sfm.stages.extract import extract_features
     from sekd_sfm.features import FeatureConfig
+    from sekd_sfm.stages.extract import extract_features
 
     truth = mixed_collection(shared, tmp_path / "images")
     features = extract_features(tmp_path / "images", tmp_path / "f.h5", FeatureConfig(feature="sift", resize_max=320,

@@ -6,7 +6,14 @@ import pytest
 import torch
 
 from sekd_sfm.errors import SekdError
-from sekd_sfm.train.config import SCHEDULES, TrainConfig, coerce, parse_set, resolve_config, schedule_config
+from sekd_sfm.train.config import (
+    SCHEDULES,
+    TrainConfig,
+    coerce,
+    parse_set,
+    resolve_config,
+    schedule_config,
+)
 from sekd_sfm.train.data import (
     PairDataset,
     affine_grid,

@@ -21,7 +21,11 @@ from sekd_sfm.train.labels import (
     select_keypoints,
     weights_sha256,
 )
-from sekd_sfm.train.model import BlockDiagonalConvTranspose2d, new_network, use_fast_deconv
+from sekd_sfm.train.model import (
+    BlockDiagonalConvTranspose2d,
+    new_network,
+    use_fast_deconv,
+)
 
 CFG = TrainConfig()
 

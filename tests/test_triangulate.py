@@ -11,8 +11,8 @@ from click.testing import CliRunner
 
 from sekd_sfm.cli.main import sekd
 from sekd_sfm.evaluation.strecha import read_cameras
-from sekd_sfm.stages.colmap import require_pycolmap
 from sekd_sfm.pipelines.triangulate import pose_pairs, read_pose_model
+from sekd_sfm.stages.colmap import require_pycolmap
 
 pycolmap = require_pycolmap()
 NAMES = [f"{i:04d}.jpg" for i in range(2, 8)]

@@ -16,8 +16,14 @@ from pathlib import Path
 import torch
 
 from sekd_sfm.model.inference import nms_keypoints, sample_descriptors
-from sekd_sfm.train.validate import find_sequences, load_sequence, mutual_matches, pair_scores, summarise
 from sekd_sfm.model.weights import load_model
+from sekd_sfm.train.validate import (
+    find_sequences,
+    load_sequence,
+    mutual_matches,
+    pair_scores,
+    summarise,
+)
 
 SETS = ["data/homography/hpatches/*", "data/homography/oxford/*"]
 

@@ -16,6 +16,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+from sekd_sfm.model.weights import load_model, save_checkpoint
 from sekd_sfm.train.config import apply, load_run_config, parse_set
 from sekd_sfm.train.data import TrainImages
 from sekd_sfm.train.distributed import setup
@@ -23,7 +24,6 @@ from sekd_sfm.train.labels import Labels
 from sekd_sfm.train.model import plain_copy
 from sekd_sfm.train.steps import train_step
 from sekd_sfm.train.validate import evaluate, find_sequences
-from sekd_sfm.model.weights import load_model, save_checkpoint
 
 SHOWN = ("total", "desc", "spread", "pres", "mma3", "mma3_i", "mma3_v", "ha_avg", "desc_cos")
 

@@ -22,13 +22,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sekd_sfm.model.weights import load_model
 from sekd_sfm.train.config import load_run_config
 from sekd_sfm.train.data import PairDataset, TrainImages
 from sekd_sfm.train.labels import Labels
 from sekd_sfm.train.losses import hardest_negatives, pairwise_distances, triplet_loss
 from sekd_sfm.train.steps import matched_keypoints, sample_upsampled
 from sekd_sfm.train.validate import mean_pairwise_cosine
-from sekd_sfm.model.weights import load_model
 
 COLUMNS = ("keypoints", "pos", "hardest neg", "random neg", "pos < neg", "ratio loss", "cosine")
 

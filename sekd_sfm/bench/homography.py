@@ -23,8 +23,8 @@ from ..evaluation import metrics
 from ..evaluation.datasets import Sequence, find_sequences
 from ..files import features as ff
 from ..files.images import read_image, resized_to_original_matrix
-from ..stages.match import match_descriptors
 from ..runtime import package_versions, run_record, timing_context
+from ..stages.match import match_descriptors
 from .methods import Method, cached_features, evaluate_each
 
 logger = logging.getLogger("sekd")

@@ -93,11 +93,11 @@ def warp_photos(photos: list[Path], folder: Path, config: LocalizationConfig) ->
 def _evaluate(method: Method, images: Path, work: Path, homographies: dict, config: LocalizationConfig) -> dict:
     import h5py
 
-    from ..stages.extract import extract_features
     from ..features import FeatureConfig
     from ..files import matches as mf
-    from ..stages.match import MatchConfig, match_features
     from ..model.inference import SEKDConfig
+    from ..stages.extract import extract_features
+    from ..stages.match import MatchConfig, match_features
     from ..stages.pairs import write_pairs
     from ..stages.refine import refine_keypoints, refine_summary
 

@@ -17,12 +17,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from ..errors import Interrupted, SekdError
-from ..stages.extract import extract_features
 from ..features import FEATURE_TYPES, FeatureConfig
 from ..features.peers import PEER_FEATURES, peer_weights_path
 from ..files import features as ff
 from ..model.inference import SEKDConfig
 from ..model.weights import EMBEDDED_MODELS, file_sha256, resolve_weights_path
+from ..stages.extract import extract_features
 
 logger = logging.getLogger("sekd")
 

@@ -22,8 +22,13 @@ from ..errors import SekdError
 from ..evaluation import metrics
 from ..evaluation.datasets import PoseScene, read_pose_scene
 from ..files import features as ff
-from ..stages.match import DEFAULT_RATIO, FALLBACK_RATIO, ROOTSIFT_FEATURES, match_descriptors
 from ..runtime import package_versions, run_record, timing_context
+from ..stages.match import (
+    DEFAULT_RATIO,
+    FALLBACK_RATIO,
+    ROOTSIFT_FEATURES,
+    match_descriptors,
+)
 from .methods import Method, cached_features, evaluate_each
 
 logger = logging.getLogger("sekd")

@@ -16,7 +16,12 @@ import torch
 from torch import nn
 
 from ..files.images import list_images, read_image
-from ..model.inference import SEKDConfig, SEKDExtractor, nms_keypoints, sample_descriptors
+from ..model.inference import (
+    SEKDConfig,
+    SEKDExtractor,
+    nms_keypoints,
+    sample_descriptors,
+)
 from ..model.network import SEKDNet
 from ..runtime import cpu_description, package_versions, run_record, set_num_threads
 

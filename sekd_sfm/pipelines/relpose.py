@@ -21,9 +21,9 @@ from ..files.images import (
     resize_max_side,
     to_original_pixels,
 )
-from ..stages.match import MatchConfig, describe_config, match_descriptors
 from ..stages.colmap import require_pycolmap
 from ..stages.database import COLMAP_PIXEL_OFFSET, parse_camera_params
+from ..stages.match import MatchConfig, describe_config, match_descriptors
 
 #: Fewer matches than this cannot give a trustworthy essential matrix.
 MIN_MATCHES = 15

@@ -17,8 +17,8 @@ import numpy as np
 from ..errors import SekdError
 from ..files import features as ff
 from ..files import matches as mf
-from .pairs import Pair
 from .colmap import open_database, require_pycolmap, set_options
+from .pairs import Pair
 
 logger = logging.getLogger("sekd")
 #: Camera sharing: auto (same size and EXIF make, model, focal length = same camera; see camera_groups),

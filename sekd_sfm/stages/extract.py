@@ -34,8 +34,8 @@ from ..files.images import (
     to_original_pixels,
 )
 from ..model.inference import FastSEKD
-from .retrieval import global_path
 from ..runtime import package_versions, set_num_threads, untune_allocator
+from .retrieval import global_path
 
 logger = logging.getLogger("sekd")
 #: Images decoded ahead of the network, on a background thread (OpenCV releases the GIL).

@@ -31,8 +31,8 @@ from ..execution import Executor, RayOptions, Result, Stage, using
 from ..files import features as ff
 from ..files import locking, partstore
 from ..files import matches as mf
-from .pairs import Pair, read_pairs
 from ..runtime import package_versions, resolve_device, set_num_threads
+from .pairs import Pair, read_pairs
 
 logger = logging.getLogger("sekd")
 MATCH_MODES = ("mnn", "ratio", "both")

@@ -25,7 +25,13 @@ import torch
 from ..errors import SekdError
 from ..files.atomic import atomic_output
 from ..files.images import list_images
-from ..model.weights import DEFAULT_MODEL, EMBEDDED_MODELS, embedded_model_path, file_sha256, resolve_weights_path
+from ..model.weights import (
+    DEFAULT_MODEL,
+    EMBEDDED_MODELS,
+    embedded_model_path,
+    file_sha256,
+    resolve_weights_path,
+)
 from .config import TrainConfig, apply, schedule_config
 from .evolve import RunFolder, Task, run_tasks
 from .report import write_atomic

@@ -46,7 +46,11 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..errors import SekdError
-from ..evaluation.samplers import jitter_gray, random_view_change, random_window_homography
+from ..evaluation.samplers import (
+    jitter_gray,
+    random_view_change,
+    random_window_homography,
+)
 from ..files.atomic import atomic_output, write_atomic
 from ..files.locking import exclusive_lock
 from ..model.fused import fp32_eval_forward

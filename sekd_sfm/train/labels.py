@@ -26,7 +26,15 @@ from tqdm import tqdm
 from ..model.fused import fp32_eval_forward
 from ..model.inference import nms_keypoints
 from .config import TrainConfig
-from .data import TrainImages, affine_grid, invert_affine, make_view, random_affine, rng_for, sample
+from .data import (
+    TrainImages,
+    affine_grid,
+    invert_affine,
+    make_view,
+    random_affine,
+    rng_for,
+    sample,
+)
 from .distributed import Context, gather_objects, shard
 
 logger = logging.getLogger("sekd.train")

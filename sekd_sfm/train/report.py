@@ -10,7 +10,9 @@ import io
 import json
 from pathlib import Path
 
-from ..files.atomic import write_atomic  # also imported from here by the training modules
+from ..files.atomic import (
+    write_atomic,  # also imported from here by the training modules
+)
 from .config import load_run_config
 
 SECTIONS = {"epochs": ("round", "kind", "epoch"), "labels": ("task",), "validation": ("task",)}

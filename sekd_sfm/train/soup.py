@@ -15,7 +15,13 @@ from pathlib import Path
 
 from ..errors import SekdError
 from ..model.lite import SEKDLiteNet
-from ..model.weights import FULL_ARCHITECTURE, LITE_ARCHITECTURE, file_sha256, load_model, save_checkpoint
+from ..model.weights import (
+    FULL_ARCHITECTURE,
+    LITE_ARCHITECTURE,
+    file_sha256,
+    load_model,
+    save_checkpoint,
+)
 
 
 def _checked_weights(count: int, weights: list[float] | None) -> list[float]:

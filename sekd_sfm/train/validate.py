@@ -21,9 +21,9 @@ from ..errors import SekdError
 from ..evaluation import metrics
 from ..evaluation.datasets import is_sequence, read_sequence
 from ..files.images import read_image, resize_max_side, resized_to_original_matrix
-from ..stages.match import match_descriptors
 from ..model.inference import SEKDConfig, SEKDExtractor
 from ..runtime import shared_dir
+from ..stages.match import match_descriptors
 from .model import plain_copy
 
 THRESHOLDS = tuple(range(1, 11))
