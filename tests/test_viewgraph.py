@@ -109,3 +109,31 @@ def test_focal_lengths_are_recovered_from_fundamental_matrices():
     with_exif[1].has_prior_focal_length = True
     assert calibrate_focal_lengths(with_exif, [p for p in pairs if p[:2] == (1, 1)]) == {}
     assert with_exif[1].mean_focal_length() == 768.0  # EXIF's focal length is kept
+
+
+def test_the_check_as_a_step_of_reconstruct_keeps_every_right_pair(tmp_path):
+    """``--view-graph`` on the synthetic views of test_reconstruct (every pair right, calibrated cameras): all 28
+    pairs checked, none dropped, the step timed and recorded."""
+    from test_reconstruct import (
+        CALIBRATED,
+        SIFT,
+        arc,
+        scene_points,
+        synthetic_views,
+        write_scene,
+    )
+
+    from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
+    from sekd_sfm.pipelines.record import read_record
+
+    rng = np.random.default_rng(7)
+    points, descriptors = scene_points(rng)
+    views = {f"view_{i:02d}.png": v for i, v in enumerate(synthetic_views(rng, points, descriptors, arc(8)))}
+    images, out = write_scene(tmp_path, views, SIFT)
+    config = ReconstructConfig(features=SIFT, camera=CALIBRATED)
+    config.view_graph.enabled = True
+    reconstruct(images, out, config, progress=False)
+    stats = read_record(out)
+    assert stats["status"] == "ok" and stats["model"]["registered_images"] == 8
+    assert stats["view_graph"]["pairs"] == 28 and stats["view_graph"]["dropped"] == 0
+    assert "view graph" in stats["timings_s"] and stats["view_graph"]["focal_lengths"] == {}  # calibrated: no estimate

@@ -37,9 +37,11 @@ logger = logging.getLogger("sekd")
 
 @dataclass
 class ViewGraphConfig:
-    """Settings of the view-graph check (``check_view_graph``); angles in degrees."""
+    """Settings of the view-graph check (``check_view_graph``); angles in degrees. Off by default: on the scenes
+    measured it removed the wrong pairs but also right ones (planar pairs whose rotation is ambiguous) and made no
+    model better (docs/experiments.md, section 31)."""
 
-    enabled: bool = True
+    enabled: bool = False
     #: Smallest disagreement (deg) between a pair's rotation and the averaged rotations that drops it.
     min_error_deg: float = 5.0
     #: ... or this many robust standard deviations of all pairs' disagreements, when that is larger.
