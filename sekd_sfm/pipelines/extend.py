@@ -274,7 +274,7 @@ def refine(run: Run, s: Extension) -> Extension:
     """The refined keypoints, staged: the earlier photos' as OUT's refined file has them, the new ones refined."""
     anchor = run.out / record.refined_name(s.config.file_names[0])
     s.keypoints = refine_keypoints(s.features, s.matches, s.pairs, s.image_dir, s.stage / REFINED, s.config.refine,
-                                   progress=run.progress, anchor=anchor)
+                                   progress=run.progress, anchor=anchor, executor=run.executor)
     s.entry["refine"] = refine_summary(s.keypoints)
     return s
 

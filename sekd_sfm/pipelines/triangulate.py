@@ -553,7 +553,7 @@ def refine(run: Run, s: Triangulation) -> Triangulation:
     """The keypoints moved to where their matches agree (``stages.refine``)."""
     s.keypoints = refine_keypoints(s.features, s.matches, s.pairs, s.image_dir,
                                    run.out / record.refined_name(s.config.file_names[0]), s.config.refine,
-                                   progress=run.progress)
+                                   progress=run.progress, executor=run.executor)
     s.stats["refine"] = refine_summary(s.keypoints)
     return s
 
