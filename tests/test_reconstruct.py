@@ -1,5 +1,6 @@
 """Reconstruction: pycolmap glue, a synthetic scene with known poses, failure explanations, sacre_coeur."""
 import json
+from pathlib import Path
 
 import cv2
 import h5py
@@ -142,13 +143,18 @@ SIFT = FeatureConfig(feature="sift", resize_max=1600)  # the CLI default of `rec
 CALIBRATED = CameraConfig(model="SIMPLE_PINHOLE", mode="single", params=f"{F},{W / 2},{H / 2}")
 
 
-@pytest.fixture(scope="module")
-def synthetic(tmp_path_factory):
-    """Eight calibrated views on an 80 degree arc around 300 points; reconstructed once."""
+def write_arc_scene(root) -> tuple[dict, Path, Path]:
+    """Eight calibrated views on an 80 degree arc around 300 points, written under ``root``: views, images, out."""
     rng = np.random.default_rng(7)
     points, descriptors = scene_points(rng)
     views = {f"view_{i:02d}.png": v for i, v in enumerate(synthetic_views(rng, points, descriptors, arc(8)))}
-    images, out = write_scene(tmp_path_factory.mktemp("synthetic"), views, SIFT)
+    return views, *write_scene(root, views, SIFT)
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    """Eight calibrated views on an 80 degree arc around 300 points; reconstructed once."""
+    views, images, out = write_arc_scene(tmp_path_factory.mktemp("synthetic"))
     model = reconstruct(images, out, ReconstructConfig(features=SIFT, camera=CALIBRATED), progress=False)
     return views, images, out, model
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from contextlib import contextmanager
 
-import numpy as np
 import pytest
 
 from sekd_sfm.errors import SekdError
@@ -124,19 +123,9 @@ def test_a_folder_without_a_record_is_one_clear_error(tmp_path):
 
 def test_a_new_step_is_one_line_in_the_pipeline(tmp_path):
     """A step of one's own between matching and refinement sees the run's files and lands in the record."""
-    from test_reconstruct import (
-        CALIBRATED,
-        SIFT,
-        arc,
-        scene_points,
-        synthetic_views,
-        write_scene,
-    )
+    from test_reconstruct import CALIBRATED, SIFT, write_arc_scene
 
-    rng = np.random.default_rng(7)
-    points, descriptors = scene_points(rng)
-    views = {f"view_{i:02d}.png": v for i, v in enumerate(synthetic_views(rng, points, descriptors, arc(8)))}
-    images, out = write_scene(tmp_path, views, SIFT)
+    _, images, out = write_arc_scene(tmp_path)
 
     def count_matches(run, state):
         from sekd_sfm.files import matches as mf

@@ -114,22 +114,12 @@ def test_focal_lengths_are_recovered_from_fundamental_matrices():
 def test_the_check_as_a_step_of_reconstruct_keeps_every_right_pair(tmp_path):
     """``--view-graph`` on the synthetic views of test_reconstruct (every pair right, calibrated cameras): all 28
     pairs checked, none dropped, the step timed and recorded."""
-    from test_reconstruct import (
-        CALIBRATED,
-        SIFT,
-        arc,
-        scene_points,
-        synthetic_views,
-        write_scene,
-    )
+    from test_reconstruct import CALIBRATED, SIFT, write_arc_scene
 
     from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
     from sekd_sfm.pipelines.record import read_record
 
-    rng = np.random.default_rng(7)
-    points, descriptors = scene_points(rng)
-    views = {f"view_{i:02d}.png": v for i, v in enumerate(synthetic_views(rng, points, descriptors, arc(8)))}
-    images, out = write_scene(tmp_path, views, SIFT)
+    _, images, out = write_arc_scene(tmp_path)
     config = ReconstructConfig(features=SIFT, camera=CALIBRATED)
     config.view_graph.enabled = True
     reconstruct(images, out, config, progress=False)

@@ -272,9 +272,8 @@ def match(run: Run, s: Extension) -> Extension:
 
 def refine(run: Run, s: Extension) -> Extension:
     """The refined keypoints, staged: the earlier photos' as OUT's refined file has them, the new ones refined."""
-    anchor = run.out / record.refined_name(s.config.file_names[0])
     s.keypoints = refine_keypoints(s.features, s.matches, s.pairs, s.image_dir, s.stage / REFINED, s.config.refine,
-                                   progress=run.progress, anchor=anchor, executor=run.executor)
+                                   progress=run.progress, anchor=s.earlier.refined, executor=run.executor)
     s.entry["refine"] = refine_summary(s.keypoints)
     return s
 

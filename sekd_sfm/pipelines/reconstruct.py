@@ -82,6 +82,7 @@ class Reconstruction:
     features: Path | None = None
     matches: Path | None = None
     pairs: Path | None = None
+    pair_list: list = field(default_factory=list)
     keypoints: Path | None = None
     database: Path | None = None
     log: Path | None = None
@@ -224,12 +225,13 @@ def match(run: Run, s: Reconstruction) -> Reconstruction:
                                    overwrite=run.options.overwrite or s.rematch, num_threads=run.num_threads,
                                    progress=run.progress, executor=run.executor)
     s.stats["matching"] = _matching_config(s.matches)
+    s.pair_list = read_pairs(s.pairs)  # what refinement and the database take, read once
     return s
 
 
 def refine(run: Run, s: Reconstruction) -> Reconstruction:
     """The keypoints moved to where their matches agree (``stages.refine``)."""
-    s.keypoints = refine_keypoints(s.features, s.matches, read_pairs(s.pairs), s.image_dir,
+    s.keypoints = refine_keypoints(s.features, s.matches, s.pair_list, s.image_dir,
                                    run.out / record.refined_name(s.config.file_names[0]), s.config.refine,
                                    progress=run.progress, executor=run.executor)
     s.stats["refine"] = refine_summary(s.keypoints)
@@ -242,7 +244,7 @@ def database(run: Run, s: Reconstruction) -> Reconstruction:
     s.log = run.hold(colmap_log(run.out / record.COLMAP_LOG))
     s.database = run.out / record.DATABASE
     s.keypoints = s.keypoints or s.features
-    create_database(s.image_dir, s.keypoints, s.matches, read_pairs(s.pairs), s.database, s.config.camera)
+    create_database(s.image_dir, s.keypoints, s.matches, s.pair_list, s.database, s.config.camera)
     return s
 
 

@@ -169,7 +169,8 @@ def calibrate_focal_lengths(cameras: dict, pairs: list[tuple[int, int, np.ndarra
         own = (first == camera_id) & (second == camera_id)
         if own.sum() >= 3:
             focal[camera_id] = best(camera_id, own, _FOCAL_FACTORS)
-    for sweep in range(sweeps if len(free) > 1 else 1):
+    # One camera: a coarse sweep, then a fine one. Several: sweeps until nothing moves (each fine after the first).
+    for sweep in range(sweeps if len(free) > 1 else 2):
         before = dict(focal)
         for camera_id in free:
             mine = (first == camera_id) | (second == camera_id)
@@ -179,7 +180,6 @@ def calibrate_focal_lengths(cameras: dict, pairs: list[tuple[int, int, np.ndarra
     estimates = {}
     for camera_id in free:
         mine = (first == camera_id) | (second == camera_id)
-        focal[camera_id] = best(camera_id, mine, _FINE_FACTORS)
         at, *near = costs(camera_id, mine, focal[camera_id] * np.array([1.0, 0.9, 1 / 0.9]))
         estimates[camera_id] = FocalEstimate(focal[camera_id], float(min(near) / max(at, 1e-12)))
         cameras[camera_id].focal_length = focal[camera_id]  # SIMPLE_* / RADIAL models: the one focal parameter
@@ -251,13 +251,13 @@ def average_rotations(R: np.ndarray, a: np.ndarray, b: np.ndarray, Rab: np.ndarr
 
 def disagreements(edges: list[Edge], config: ViewGraphConfig) -> np.ndarray:
     """Each pair's disagreement (deg) with rotations averaged over all ``edges``."""
-    names = sorted({e.image1 for e in edges} | {e.image2 for e in edges})
-    index = {image_id: i for i, image_id in enumerate(names)}
+    ids = sorted({e.image1 for e in edges} | {e.image2 for e in edges})
+    index = {image_id: i for i, image_id in enumerate(ids)}
     a = np.array([index[e.image1] for e in edges], np.int64)
     b = np.array([index[e.image2] for e in edges], np.int64)
     Rab = np.stack([e.rotation for e in edges])
     weights = np.sqrt(np.array([e.inliers for e in edges], np.float64))  # many inliers: a surer rotation
-    R = spanning_rotations(len(names), a, b, Rab, weights)
+    R = spanning_rotations(len(ids), a, b, Rab, weights)
     R = average_rotations(R, a, b, Rab, weights, config.min_error_deg, config.iterations)
     return rotation_angle_deg(Rab @ R[a] @ R[b].transpose(0, 2, 1))
 
