@@ -180,8 +180,9 @@ def test_synthetic_outputs_and_stats(synthetic):
     assert stats["status"] == "ok" and stats["failure"] is None
     assert stats["model"]["registered_images"] == 8 and stats["model"]["points3D"] > 200
     assert stats["model"]["mean_track_length"] > 3 and stats["matches"]["verified_pairs"] == 28
-    assert set(stats["timings_s"]) == {"extract", "pairs", "match", "refine", "database", "verification", "mapping",
-                                       "total"}
+    assert set(stats["timings_s"]) == {"extract", "pairs", "match", "refine", "database", "verification",
+                                       "chance check", "mapping", "total"}
+    assert stats["chance"]["verified"] == 28 and stats["chance"]["dropped"] == 0  # every pair right
     # Blank photos: no patch can be aligned, so refinement leaves every keypoint where it was.
     assert stats["refine"]["aligned"] == 0 and stats["refine"]["matches"] > 0
     assert stats["unregistered"] == [] and stats["config"]["camera"]["mode"] == "single"
@@ -310,7 +311,7 @@ def test_two_groups_write_two_models_and_list_the_stray_photo(tmp_path, caplog):
     views["stray.png"] = synthetic_views(rng, points, descriptors, arc(1))[0]
     images, out = write_scene(tmp_path, views, SIFT)
     (out / "submodels" / "1").mkdir(parents=True)  # the layout of older versions: replaced
-    result, errors = run_cli(images, out, "--mapper", "min_model_size=3")
+    result, errors = run_cli(images, out)  # models of 3+ photos are kept (COLMAP's default: 10)
     assert result.exit_code == 0 and errors == [], result.output
     assert "2 models: the images split into groups the mapper could not join" in caplog.text
     assert "(no verified pair links them)" in caplog.text and "models             2" in result.output
@@ -324,7 +325,9 @@ def test_two_groups_write_two_models_and_list_the_stray_photo(tmp_path, caplog):
     stray = stats["unregistered"][0]
     assert stray["verified_pairs"] == 0 and stray["keypoints"] == len(views["stray.png"]["keypoints"])
     assert stray["best_inliers"] < 15 and all(p["inliers"] < 15 for p in stray["best_pairs"])
-    assert "not registered     stray.png" in result.output
+    assert stray["reason"] == f"no verified pair: its best pair has {stray['best_inliers']} inliers, a pair needs 15"
+    assert "not registered     stray.png: no verified pair" in result.output
+    assert "models             2: 6, 5 photos" in result.output
 
 
 def test_unrelated_images_give_too_few_matches(tmp_path):

@@ -27,11 +27,13 @@ The summary (``summarize``): verified pairs, wrong pairs, wrong among near and f
 photos' separation: their index distance in the sequence of names for a walk, cyclic for a ring,
 else the rank of one camera centre among the other's nearest, halved; ``sequence_order`` tells
 which from the true centres), median inliers of right and wrong pairs, and a histogram of the
-inliers of wrong pairs (wrong pairs with many inliers are the ones a threshold cannot remove).
+inliers of wrong pairs (wrong pairs with many inliers are the ones a threshold cannot remove);
+then which wrong and right pairs the chance check (``stages.chance``) drops from each method's
+database and how many wrong pairs are left for the mapper.
 
 The runner (``run_pairs_benchmark``) verifies the pairs of a scene once per method: ``sekd``,
 our pipeline (``pipelines.reconstruct``) stopped after its verification step (features, pairs,
-matches, refinement, database: everything the mapper would get); ``sift``, pycolmap's SIFT
+matches, refinement, database: what the mapper would get before the checks); ``sift``, pycolmap's SIFT
 extraction, matching and verification (``bench.scale.run.run_pycolmap`` without its mapping
 stage) on the same pairs as ``sekd`` (every pair when ``sekd`` did not run), and scores each
 database. Files::
@@ -373,6 +375,11 @@ def summarize(rows: list[dict], near: int = NEAR) -> dict:
                "inlier_histogram_right": inlier_histogram([r["inliers"] for r in right]),
                "configs": {c: [sum(r["config"] == c for r in right), sum(r["config"] == c for r in wrong)]
                            for c in sorted({r["config"] for r in scored})}}
+    if any("chance" in r for r in scored):  # what the chance check removes, and the wrong pairs the mapper still gets
+        summary["chance"] = {"dropped_wrong": sum(bool(r.get("chance")) for r in wrong),
+                             "dropped_right": sum(bool(r.get("chance")) for r in right),
+                             "wrong_left": sum(not r.get("chance") for r in wrong),
+                             "verified_left": sum(not r.get("chance") for r in scored)}
     if any(r.get("separation") is not None for r in scored):
         by_distance: dict[int, list[int]] = {}
         for r in scored:
@@ -478,8 +485,21 @@ def score_method(work: Path, truth: SceneTruth, config: PairsBenchConfig) -> dic
     separation = truth.separation()
     for row in rows:
         row["separation"] = separation(row["image0"], row["image1"])
+    mark_chance_pairs(work / DATABASE, rows, config)
     write_atomic(work / "pair_scores.json", json.dumps(rows, indent=0))
     return summarize(rows, config.near)
+
+
+def mark_chance_pairs(database: Path, rows: list[dict], config: PairsBenchConfig) -> None:
+    """Set each row's ``chance``: whether the chance check (``stages.chance``, its defaults) drops the pair. The
+    check runs on the database as verification left it, for every method, and changes nothing in it: what it
+    would remove is scored, not applied."""
+    from ..stages.chance import find_chance_pairs
+
+    dropped, _ = find_chance_pairs(database, config.min_inliers, seed=config.seed, num_threads=config.num_threads or -1)
+    names = {frozenset((pair.name1, pair.name2)) for pair in dropped}
+    for row in rows:
+        row["chance"] = frozenset((row["image0"], row["image1"])) in names
 
 
 def run_pairs_benchmark(scene: str | Path, output_dir: str | Path, config: PairsBenchConfig | None = None) -> Path:
@@ -580,6 +600,13 @@ def pairs_markdown(report: dict) -> str:
                      f"| {entry['pose_off']} ({entry['ambiguous']}) "
                      f"| {_n(entry['median_inliers_right'])} | {_n(entry['median_inliers_wrong'])} "
                      f"| {_n(entry['max_inliers_wrong'])} |")
+    checked = [(m, e) for m, e in report["methods"].items() if "chance" in e]
+    if checked:
+        lines += ["", ("The chance check (`stages.chance`: a pair is dropped when RANSAC on its matches shuffled "
+                       "reaches more than 1/1.25 of its inliers), applied to each method's verified pairs:"), "",
+                  "| method | dropped: wrong | dropped: right | left: wrong / verified |", "|---|---|---|---|"]
+        lines += [f"| {m} | {e['chance']['dropped_wrong']} | {e['chance']['dropped_right']} "
+                  f"| {e['chance']['wrong_left']} / {e['chance']['verified_left']} |" for m, e in checked]
     overlap = [(m, e) for m, e in report["methods"].items() if "overlapping" in e]
     if overlap:
         lines += ["", "| method | wrong among truly overlapping | wrong among not overlapping |", "|---|---|---|"]

@@ -134,10 +134,20 @@ view_graph_option = click.option(
          "generated walk also right ones, and no model measured got better. stats.json view_graph lists the drops.")
 
 
+chance_option = click.option(
+    "--chance-check/--no-chance-check", default=True, show_default=True,
+    help="After verification, drop the verified pairs whose inliers chance alone would give: RANSAC run again on "
+         "each weak pair's matches shuffled (100 random matches in a 640 px photo already reach 16 inliers). "
+         "Learned features keep more matches between photos that share no surface than SIFT; on like columns or "
+         "facades such pairs verify at 15-25 inliers, are wrong, and split or fold the model. stats.json chance "
+         "lists the drops.")
+
+
 def mapping_options(*, verification: bool = True) -> Decorator:
     """The group ``mapping``: --mapper-type, --mapper, --refine, --verification (if ``verification``) and --seed,
     how matches become a model."""
-    declarations = [mapper_type_option, mapper_option, refine_option, view_graph_option, final_filter_option]
+    declarations = [mapper_type_option, mapper_option, refine_option, chance_option, view_graph_option,
+                    final_filter_option]
     declarations += [verification_option] if verification else []
     return option_group("mapping", *declarations, seed_option)
 
@@ -167,6 +177,7 @@ def reconstruct_config(extraction: OptionValues, matching: OptionValues, camera:
                                masks=str(Path(masks).resolve()) if masks else None)
     config.refine.enabled = mapping["refine"]
     config.final_filter = mapping.get("final_filter", True)
+    config.chance.enabled = mapping.get("chance_check", True)
     config.view_graph.enabled = mapping.get("view_graph", False)
     if conf:  # hloc-style names, so the files of several presets coexist in OUTPUT
         config.file_names = output_names(conf, "pairs")

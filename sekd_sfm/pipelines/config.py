@@ -16,6 +16,7 @@ from ..stages.georef import GpsConfig
 from ..stages.match import MatchConfig
 from ..stages.pairs import PairsConfig
 from ..stages.refine import RefineConfig
+from ..stages.chance import ChanceConfig
 from ..stages.viewgraph import ViewGraphConfig
 
 #: Long side (px) images are reduced to for reconstruction, as hloc does: SEKD's cost grows with
@@ -46,6 +47,9 @@ class ReconstructConfig:
     #: Keypoint refinement between matching and the database (``refine.py``): on the generated
     #: 250-photo block pose AUC@5 0.971 -> 0.980, reprojection error 0.39 -> 0.22 px.
     refine: RefineConfig = field(default_factory=RefineConfig)
+    #: Right after verification, drop the verified pairs whose inliers chance alone would give (``stages.chance``:
+    #: far-apart photos of like columns verified at 15-25 inliers).
+    chance: ChanceConfig = field(default_factory=ChanceConfig)
     #: Between verification and mapping, drop the verified pairs whose relative rotation disagrees with the rest
     #: of the view graph (``stages.viewgraph``: wrong pairs on repeated or symmetric structure).
     view_graph: ViewGraphConfig = field(default_factory=ViewGraphConfig)
@@ -91,8 +95,9 @@ def typed(cls: type, data: dict) -> Any:
 
 def config_from_dict(data: dict, weights: str | None = None) -> ReconstructConfig:
     """The ReconstructConfig a record's ``config`` describes; ``weights``: the SEKD network's file, which records
-    leave out. A record made before the final filter or the view-graph check existed has neither (off: its model
-    was made without them, and its extensions are too)."""
-    config = typed(ReconstructConfig, {"final_filter": False, "view_graph": {"enabled": False}, **data})
+    leave out. A record made before the final filter, the view-graph check or the chance check existed has none of
+    them (off: its model was made without them, and its extensions are too)."""
+    config = typed(ReconstructConfig, {"final_filter": False, "view_graph": {"enabled": False},
+                                       "chance": {"enabled": False}, **data})
     config.features.weights = weights
     return config

@@ -50,6 +50,7 @@ from ..stages.colmap import (
     require_pycolmap,
     set_options,
 )
+from ..stages.chance import check_chance
 from ..stages.database import add_to_database, two_view_options, verify_matches
 from ..stages.extract import extract_features
 from ..stages.mapping import (
@@ -297,6 +298,14 @@ def verification(run: Run, s: Extension) -> Extension:
     return s
 
 
+def chance(run: Run, s: Extension) -> Extension:
+    """The verified pairs no better than chance dropped (``stages.chance``), as the run that made the model did:
+    its decisions on the pairs already there repeat (seeded per pair), so only new pairs can be dropped."""
+    floor = two_view_options(s.config.verification, s.config.seed).min_num_inliers  # what verification accepts
+    s.entry["chance"] = check_chance(s.database, floor, s.config.chance, s.config.seed, run.num_threads or -1)
+    return s
+
+
 def match_report(run: Run, s: Extension) -> Extension:
     """The mapper's options (``extension_options``) and the verified matches' statistics."""
     s.mapper = extension_options(s.config, s.options.refine, s.database, s.known)
@@ -321,7 +330,8 @@ def check_model(run: Run, s: Extension) -> Extension:
     stage_model(s.model, s.stage)
     names = set(registered_names(s.model))
     s.entry["registered"] = [n for n in s.added if n in names]
-    s.entry["unregistered"] = unregistered_report([n for n in s.added if n not in names], s.match_stats)
+    s.entry["unregistered"] = unregistered_report([n for n in s.added if n not in names], s.match_stats,
+                                                  dict.fromkeys(names, 0))
     s.entry["mapper"] = {"type": "incremental, continuing from model/", "fix_existing_frames":
                          bool(s.mapper.fix_existing_frames), "constant_cameras": sorted(s.mapper.constant_cameras),
                          "ba_refine_principal_point": bool(s.mapper.ba_refine_principal_point)}
@@ -339,8 +349,8 @@ def stage_record(run: Run, s: Extension) -> Extension:
     stats["matches"] = summarize_matches(s.match_stats)
     if stats.get("models"):
         stats["models"][0] = {**stats["models"][0], **model_stats(s.model), "images": sorted(names)}
-    in_a_model = names | {n for m in stats.get("models", [])[1:] for n in m.get("images", [])}
-    stats["unregistered"] = unregistered_report(sorted(set(s.match_stats["images"]) - in_a_model), s.match_stats)
+    where = {**{n: k for k, m in enumerate(stats.get("models", [])) for n in m.get("images", [])}, **dict.fromkeys(names, 0)}
+    stats["unregistered"] = unregistered_report(sorted(set(s.match_stats["images"]) - set(where)), s.match_stats, where)
     record.write_record(stats, s.stage)
     return s
 
@@ -367,6 +377,7 @@ EXTEND: tuple[Step, ...] = (
     Step("refine", refine, when=lambda s: s.config.refine.enabled),
     Step("database", database),
     Step("verification", verification),
+    Step("chance check", chance, when=lambda s: s.config.chance.enabled),
     Step("match report", match_report, timed=False),
     Step("mapping", mapping),
     Step("model check", check_model, timed=False),

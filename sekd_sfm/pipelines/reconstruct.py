@@ -46,6 +46,7 @@ from ..stages.match import match_features
 from ..stages.pairs import make_pairs, read_pairs, write_pairs
 from ..stages.principal_point import PrincipalPointPlan, plan_principal_point
 from ..stages.refine import refine_keypoints, refine_summary
+from ..stages.chance import check_chance
 from ..stages.viewgraph import check_view_graph
 from . import record
 from .config import DEFAULT_MAPPER, DEFAULT_RESIZE_MAX, ReconstructConfig, config_dict
@@ -263,6 +264,13 @@ def verification(run: Run, s: Reconstruction) -> Reconstruction:
     return s
 
 
+def chance(run: Run, s: Reconstruction) -> Reconstruction:
+    """The verified pairs whose inliers chance alone would give dropped (``stages.chance``)."""
+    s.stats["chance"] = check_chance(s.database, min_num_matches(s.options), s.config.chance, s.config.seed,
+                                     run.num_threads or -1)
+    return s
+
+
 def match_report(run: Run, s: Reconstruction) -> Reconstruction:
     """The verified matches' statistics; ReconstructionError when too few to map."""
     s.match_stats = match_statistics(s.database, min_num_matches(s.options))
@@ -307,6 +315,7 @@ RECONSTRUCT: tuple[Step, ...] = (
     Step("database", database),
     Step("principal point", principal_point, timed=False),
     Step("verification", verification),
+    Step("chance check", chance, when=lambda s: s.config.chance.enabled),
     Step("match report", match_report, timed=False),
     Step("view graph", view_graph, when=lambda s: s.config.view_graph.enabled),
     Step("mapping", mapping),
@@ -365,8 +374,8 @@ def _finish(models: list, match_stats: dict, options, out: Path, stats: dict, da
     groups = [registered_names(m) for m in models]
     stats["model"] = model_stats(models[0])
     stats["models"] = [{"path": str(p), **model_stats(m), "images": names} for p, m, names in zip(paths, models, groups)]
-    in_a_model = {name for names in groups for name in names}
-    stats["unregistered"] = unregistered_report(sorted(set(match_stats["images"]) - in_a_model), match_stats)
+    where = {name: k for k, names in enumerate(groups) for name in names}
+    stats["unregistered"] = unregistered_report(sorted(set(match_stats["images"]) - set(where)), match_stats, where)
     stats["output"] = str(paths[0])
     if len(models) > 1:
         message = explain_models(groups, match_stats, paths)

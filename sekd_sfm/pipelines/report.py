@@ -142,14 +142,61 @@ def explain_models(groups: list[list[str]], stats: dict, paths: list[Path]) -> s
     )
 
 
-def unregistered_report(names: list[str], stats: dict) -> list[dict]:
-    """For images in no model: keypoints, verified pairs, best inlier count and raw matches of their best pairs."""
+def unregistered_report(names: list[str], stats: dict, where: dict[str, int] | None = None) -> list[dict]:
+    """For images in no model: keypoints, verified pairs, best inlier count, raw matches of their best pairs, and
+    ``reason``, why the image is in no model (``unregistered_reason``). ``where``: image name -> index of the model
+    holding it (the images of no model left out)."""
+    where = where or {}
+    groups = unmapped_groups(names, stats)
     report = []
     for name in names:
         best = [(b if a == name else a, raw, inl) for a, b, raw, inl in stats["pairs"] if name in (a, b)][:3]
-        report.append({"name": name, **stats["images"].get(name, {}),
-                       "best_pairs": [{"with": other, "matches": raw, "inliers": inl} for other, raw, inl in best]})
+        item = {"name": name, **stats["images"].get(name, {}),
+                "best_pairs": [{"with": other, "matches": raw, "inliers": inl} for other, raw, inl in best]}
+        item["reason"] = unregistered_reason(name, stats, where, groups[name])
+        report.append(item)
     return report
+
+
+def unmapped_groups(names: list[str], stats: dict) -> dict[str, list[str]]:
+    """Each of ``names`` (images in no model) -> the images in no model it is linked to by verified pairs,
+    itself included (connected components of the verified pairs among ``names``)."""
+    parent = {name: name for name in names}
+
+    def root(name: str) -> str:
+        while parent[name] != name:
+            parent[name] = parent[parent[name]]
+            name = parent[name]
+        return name
+
+    for a, b, _, inliers in stats["pairs"]:
+        if inliers >= stats["min_inliers"] and a in parent and b in parent:
+            parent[root(a)] = root(b)
+    members: dict[str, list[str]] = {}
+    for name in names:
+        members.setdefault(root(name), []).append(name)
+    return {name: members[root(name)] for name in names}
+
+
+def unregistered_reason(name: str, stats: dict, where: dict[str, int], group: list[str]) -> str:
+    """Why ``name`` is in no model, in one line: no verified pair; pairs with a model's photos that the mapper could
+    not register it from; or a group of photos in no model (too small, or no initial pair in it)."""
+    from ..stages.mapping import MIN_MODEL_SIZE
+
+    image = stats["images"].get(name, {})
+    if not image.get("verified_pairs"):
+        return (f"no verified pair: its best pair has {image.get('best_inliers', 0)} inliers, a pair needs "
+                f"{stats['min_inliers']}")
+    linked = sorted({where[b if a == name else a] for a, b, _, inl in stats["pairs"]
+                     if name in (a, b) and inl >= stats["min_inliers"] and (b if a == name else a) in where})
+    if linked:
+        return (f"verified pairs with photos of model {linked[0]}, but the mapper could not register it (too few of "
+                "its matches reach the model's 3D points, or its pose did not verify)")
+    if len(group) < MIN_MODEL_SIZE:
+        return (f"verified pairs only with {len(group) - 1} other photo(s) in no model: a model needs "
+                f"{MIN_MODEL_SIZE} photos")
+    return (f"one of {len(group)} photos linked only to each other, which the mapper could not start a model from "
+            "(no initial pair: too few inliers or too little parallax)")
 
 
 def format_summary(stats: dict) -> str:
@@ -161,7 +208,9 @@ def format_summary(stats: dict) -> str:
         lines.append(f"  3D points          {model['points3D']}")
         lines.append(f"  mean track length  {model['mean_track_length']:.2f}")
         lines.append(f"  mean reproj. error {model['mean_reprojection_error_px']:.3f} px")
-        lines.append(f"  models             {len(stats['models'])}" + (" (the others in models/)" if len(stats["models"]) > 1 else ""))
+        sizes = ", ".join(str(m["registered_images"]) for m in stats["models"])
+        lines.append(f"  models             {len(stats['models'])}" + (f": {sizes} photos (the others in models/)"
+                                                                      if len(stats["models"]) > 1 else ""))
     m = stats.get("matches") or {}
     if m:
         lines.append(f"  matches            {m['pairs_with_matches']} pairs, median {m['median_matches']:.0f} matches, "
@@ -170,6 +219,10 @@ def format_summary(stats: dict) -> str:
     if refine:
         lines.append(f"  refined keypoints  {refine['aligned']} of {refine['matches']} matches aligned, "
                      f"median shift {refine['median_shift_px']:.2f} px")
+    chance = stats.get("chance")
+    if chance and chance.get("dropped"):
+        lines.append(f"  chance check       {chance['dropped']} of {chance['verified']} verified pairs dropped: their "
+                     f"inliers no more than {chance['config']['margin']:.2f} x what their matches reach shuffled")
     graph = stats.get("view_graph")
     if graph and graph.get("skipped"):
         lines.append(f"  view graph         not checked: {graph['skipped']} (--camera-params makes it checkable)")
@@ -183,8 +236,9 @@ def format_summary(stats: dict) -> str:
                      f"{filtered['mean_error_before_px']:.3f} -> {filtered['mean_error_after_px']:.3f} px")
     unregistered = stats.get("unregistered", [])
     for item in unregistered[:5]:
-        lines.append(f"  not registered     {item['name']}: {item.get('keypoints', 0)} keypoints, "
-                     f"{item.get('verified_pairs', 0)} verified pairs, best {item.get('best_inliers', 0)} inliers")
+        lines.append(f"  not registered     {item['name']}: " + (item.get("reason") or
+                     f"{item.get('keypoints', 0)} keypoints, {item.get('verified_pairs', 0)} verified pairs, "
+                     f"best {item.get('best_inliers', 0)} inliers"))
     if len(unregistered) > 5:
         lines.append(f"  not registered     ... and {len(unregistered) - 5} more (listed in {STATS})")
     timings = stats.get("timings_s", {})

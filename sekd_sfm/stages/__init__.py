@@ -5,6 +5,7 @@
     match       features.h5 + pairs.txt -> matches.h5
     refine      features + matches -> features-refined.h5
     database    -> database.db                        (COLMAP import and geometric verification)
+    chance      database.db -> database.db            (verified pairs no better than chance dropped)
     viewgraph   database.db -> database.db            (verified pairs that disagree with the view graph dropped)
     mapping     database.db -> models                 (mapper_worker: the mapper's child process;
                                                         principal_point: the principal-point test)

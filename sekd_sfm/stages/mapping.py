@@ -50,6 +50,10 @@ MAPPER_CHOICES = ("auto", *MAPPER_TYPES)
 HIERARCHICAL_LEAF_IMAGES = 125
 #: ``auto`` maps more photos than this hierarchically (at 250 both mappers are level in time and accuracy).
 AUTO_HIERARCHICAL_ABOVE = 250
+#: Fewest photos a model keeps (COLMAP's default is 10): a folder that holds several places maps each group of
+#: 3+ photos the mapper can build, so a small place (8 photos of one facade among 40) is not dropped silently.
+#: The hierarchical mapper's clusters keep COLMAP's 10: a cluster's stray fragments would enter its merge.
+MIN_MODEL_SIZE = 3
 #: pycolmap's option class of each mapper type.
 OPTION_CLASSES = {"incremental": "IncrementalPipelineOptions", "global": "GlobalPipelineOptions",
                   "hierarchical": "HierarchicalPipelineOptions"}
@@ -73,6 +77,7 @@ def default_options(mapper_type: str = "incremental", seed: int = 0):
         options.clustering_options.leaf_max_num_images = HIERARCHICAL_LEAF_IMAGES
     else:
         options.random_seed = seed
+        options.min_model_size = MIN_MODEL_SIZE
     return options
 
 

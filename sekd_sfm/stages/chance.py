@@ -1,0 +1,150 @@
+"""The chance check, right after geometric verification: verified pairs whose inliers chance alone would give.
+
+COLMAP verifies a pair when some epipolar geometry (a fundamental matrix: 7 degrees of freedom)
+has at least 15 inlier matches within 4 px. How many inliers *random* matches reach depends on
+how many matches there are and where their keypoints lie: RANSAC picks the best of thousands of
+hypotheses, and a fundamental matrix whose epipoles fall inside the photo passes close to many
+points. 100 uniformly random matches in a 640 px photo already give 16 inliers; keypoints
+crowded on one object give more. A learned descriptor keeps more putative matches between photos
+that share no surface than SIFT's ratio test does (tens against a handful), so on a turntable of
+like columns pair after pair of photos far apart passes verification at 15-25 inliers, and
+those pairs are wrong: the mapper restarts, splits the ring or folds it (docs/experiments.md,
+section 32).
+
+The test is empirical (an a-contrario test by permutation): for each verified pair with fewer
+than ``max_inliers`` inliers, the same RANSAC (fundamental matrix, COLMAP's threshold and trial
+budget) runs on its putative matches with the correspondences shuffled, ``shuffles`` times. The
+shuffles keep everything but the correspondence itself (both keypoint sets, their crowding, the
+photo size), so the most inliers they reach is what chance gives these matches. The pair is
+dropped from the database's verified pairs (its raw matches stay) unless its own inliers exceed
+``margin`` times that. Seeds derive from the pair's names: the same database gives the same
+decisions in any order and on any number of threads.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .colmap import open_database, require_pycolmap
+
+logger = logging.getLogger("sekd")
+
+
+@dataclass
+class ChanceConfig:
+    """Settings of the chance check (``check_chance``)."""
+
+    enabled: bool = True
+    #: Shuffles of each tested pair's matches; the chance level is the most inliers any of them reaches.
+    shuffles: int = 4
+    #: A pair is kept when its inliers are at least ``margin`` times the chance level.
+    margin: float = 1.25
+    #: Pairs with at least this many inliers are not tested (chance levels measured stay under 50).
+    max_inliers: int = 100
+    #: RANSAC threshold (px) and trials of the shuffled runs: those of COLMAP's verification.
+    max_error_px: float = 4.0
+    max_num_trials: int = 2000
+
+
+@dataclass
+class PairMatches:
+    """One verified pair: image ids and names, its inlier count, its putative matches' keypoints (N x 2, px)."""
+
+    image1: int
+    image2: int
+    name1: str
+    name2: str
+    inliers: int
+    points1: np.ndarray
+    points2: np.ndarray
+
+
+def pair_seed(name1: str, name2: str, seed: int) -> int:
+    """A 31-bit seed from the pair's names and ``seed``: independent of the order pairs are tested in."""
+    digest = hashlib.sha1(f"{seed}\0{name1}\0{name2}".encode()).digest()
+    return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+
+
+def chance_inliers(points1: np.ndarray, points2: np.ndarray, config: ChanceConfig, seed: int,
+                   stop_at: int | None = None) -> list[int]:
+    """Inliers RANSAC (fundamental matrix) finds on ``config.shuffles`` shufflings of the correspondences between
+    ``points1`` and ``points2`` (N x 2 each, px). Stops early once a shuffle reaches ``stop_at`` (the pair is then
+    no better than chance whatever the other shuffles give)."""
+    pycolmap = require_pycolmap()
+    options = pycolmap.RANSACOptions()
+    options.max_error, options.max_num_trials = config.max_error_px, config.max_num_trials
+    rng = np.random.default_rng(seed)
+    found: list[int] = []
+    for trial in range(config.shuffles):
+        options.random_seed = (seed + trial) & 0x7FFFFFFF
+        result = pycolmap.estimate_fundamental_matrix(points1, points2[rng.permutation(len(points2))], options)
+        found.append(int(result["num_inliers"]) if result else 0)
+        if stop_at is not None and found[-1] >= stop_at:
+            break
+    return found
+
+
+def read_weak_pairs(database: str | Path, min_inliers: int, max_inliers: int) -> tuple[list[PairMatches], int]:
+    """The verified pairs of ``database`` with ``min_inliers`` <= inliers < ``max_inliers`` and their putative
+    matches, and the number of verified pairs in all."""
+    pycolmap = require_pycolmap()
+    with open_database(database) as db:
+        names = {image.image_id: image.name for image in db.read_all_images()}
+        verified = [(pycolmap.pair_id_to_image_pair(pair_id), len(geometry.inlier_matches))
+                    for pair_id, geometry in zip(*db.read_two_view_geometries())
+                    if len(geometry.inlier_matches) >= min_inliers]
+        weak = [(pair, inliers) for pair, inliers in verified if inliers < max_inliers]
+        keypoints = {image_id: np.asarray(db.read_keypoints(image_id), np.float64)[:, :2]
+                     for image_id in sorted({i for pair, _ in weak for i in pair})}
+        pairs = []
+        for (id1, id2), inliers in weak:
+            matches = np.asarray(db.read_matches(id1, id2), np.int64).reshape(-1, 2)
+            pairs.append(PairMatches(id1, id2, names[id1], names[id2], inliers, keypoints[id1][matches[:, 0]],
+                                     keypoints[id2][matches[:, 1]]))
+    return pairs, len(verified)
+
+
+def chance_level(pair: PairMatches, config: ChanceConfig, seed: int) -> int:
+    """The chance level of ``pair``: the most inliers its shuffled matches reach (``chance_inliers``)."""
+    needed = int(np.ceil(pair.inliers / config.margin))  # a shuffle this good already condemns the pair
+    return max(chance_inliers(pair.points1, pair.points2, config, pair_seed(pair.name1, pair.name2, seed),
+                              stop_at=needed), default=0)
+
+
+def find_chance_pairs(database: str | Path, min_inliers: int, config: ChanceConfig | None = None, seed: int = 0,
+                      num_threads: int = 1) -> tuple[list[PairMatches], dict]:
+    """The verified pairs of ``database`` no better than chance (module doc), and the record: verified pairs, pairs
+    tested, dropped (names, inliers, putative matches, chance level), the settings. Changes nothing.
+    ``num_threads`` threads test pairs at once (pycolmap's RANSAC releases the GIL; -1: one per core)."""
+    config = config or ChanceConfig()
+    num_threads = num_threads if num_threads > 0 else os.cpu_count() or 1
+    pairs, verified = read_weak_pairs(database, min_inliers, config.max_inliers)
+    with ThreadPoolExecutor(num_threads) as pool:
+        levels = list(pool.map(lambda pair: chance_level(pair, config, seed), pairs))
+    dropped = [(pair, level) for pair, level in zip(pairs, levels) if pair.inliers < config.margin * level]
+    return [pair for pair, _ in dropped], {
+        "verified": verified, "tested": len(pairs), "dropped": len(dropped),
+        "dropped_pairs": [{"pair": [p.name1, p.name2], "inliers": p.inliers, "matches": len(p.points1),
+                           "chance_inliers": level} for p, level in sorted(dropped, key=lambda d: d[0].inliers)],
+        "config": asdict(config)}
+
+
+def check_chance(database: str | Path, min_inliers: int, config: ChanceConfig | None = None, seed: int = 0,
+                 num_threads: int = 1) -> dict:
+    """Drop from ``database``'s verified pairs those no better than chance (``find_chance_pairs``); their raw
+    matches stay. Returns ``find_chance_pairs``'s record."""
+    config = config or ChanceConfig()
+    dropped, record = find_chance_pairs(database, min_inliers, config, seed, num_threads)
+    if dropped:
+        with open_database(database) as db:
+            for pair in dropped:
+                db.delete_inlier_matches(pair.image1, pair.image2)
+        logger.info("chance check: %d of %d verified pairs dropped, their inliers under %.2f x what their matches "
+                    "reach shuffled", len(dropped), record["verified"], config.margin)
+    return record
