@@ -6,7 +6,12 @@ import shutil
 import numpy as np
 import pytest
 
-from sekd_sfm.stages.chance import ChanceConfig, chance_inliers, check_chance, read_weak_pairs
+from sekd_sfm.stages.chance import (
+    ChanceConfig,
+    chance_inliers,
+    check_chance,
+    read_weak_pairs,
+)
 from sekd_sfm.stages.colmap import open_database, require_pycolmap
 
 pycolmap = require_pycolmap()

@@ -11,12 +11,12 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from ..features import FeatureConfig
+from ..stages.chance import ChanceConfig
 from ..stages.database import CameraConfig
 from ..stages.georef import GpsConfig
 from ..stages.match import MatchConfig
 from ..stages.pairs import PairsConfig
 from ..stages.refine import RefineConfig
-from ..stages.chance import ChanceConfig
 from ..stages.viewgraph import ViewGraphConfig
 
 #: Long side (px) images are reduced to for reconstruction, as hloc does: SEKD's cost grows with

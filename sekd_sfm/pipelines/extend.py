@@ -42,6 +42,7 @@ from ..errors import SekdError
 from ..files import features as ff
 from ..files.images import list_images
 from ..runtime import package_versions
+from ..stages.chance import check_chance
 from ..stages.colmap import (
     clean_logs,
     colmap_log,
@@ -50,7 +51,6 @@ from ..stages.colmap import (
     require_pycolmap,
     set_options,
 )
-from ..stages.chance import check_chance
 from ..stages.database import add_to_database, two_view_options, verify_matches
 from ..stages.extract import extract_features
 from ..stages.mapping import (

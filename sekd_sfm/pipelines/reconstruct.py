@@ -22,6 +22,7 @@ from ..files import features as ff
 from ..files import matches as mf
 from ..files.images import list_images
 from ..runtime import package_versions
+from ..stages.chance import check_chance
 from ..stages.colmap import clean_logs, colmap_log, log_prefix, require_pycolmap
 from ..stages.database import (
     check_principal_point_mode,
@@ -46,7 +47,6 @@ from ..stages.match import match_features
 from ..stages.pairs import make_pairs, read_pairs, write_pairs
 from ..stages.principal_point import PrincipalPointPlan, plan_principal_point
 from ..stages.refine import refine_keypoints, refine_summary
-from ..stages.chance import check_chance
 from ..stages.viewgraph import check_view_graph
 from . import record
 from .config import DEFAULT_MAPPER, DEFAULT_RESIZE_MAX, ReconstructConfig, config_dict
