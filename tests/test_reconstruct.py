@@ -181,8 +181,10 @@ def test_synthetic_outputs_and_stats(synthetic):
     assert stats["model"]["registered_images"] == 8 and stats["model"]["points3D"] > 200
     assert stats["model"]["mean_track_length"] > 3 and stats["matches"]["verified_pairs"] == 28
     assert set(stats["timings_s"]) == {"extract", "pairs", "match", "refine", "database", "verification",
-                                       "chance check", "mapping", "total"}
+                                       "chance check", "mapping", "model check", "total"}
     assert stats["chance"]["verified"] == 28 and stats["chance"]["dropped"] == 0  # every pair right
+    (check,) = stats["model_check"]  # every pair agrees with the model
+    assert check["pairs"] == 28 and check["contradicting"] == 0 and not check["suspect"]
     # Blank photos: no patch can be aligned, so refinement leaves every keypoint where it was.
     assert stats["refine"]["aligned"] == 0 and stats["refine"]["matches"] > 0
     assert stats["unregistered"] == [] and stats["config"]["camera"]["mode"] == "single"

@@ -15,6 +15,7 @@ from ..stages.chance import ChanceConfig
 from ..stages.database import CameraConfig
 from ..stages.georef import GpsConfig
 from ..stages.match import MatchConfig
+from ..stages.modelcheck import ModelCheckConfig
 from ..stages.pairs import PairsConfig
 from ..stages.refine import RefineConfig
 from ..stages.viewgraph import ViewGraphConfig
@@ -56,6 +57,9 @@ class ReconstructConfig:
     #: After mapping, drop each model's outlying observations (beyond max(0.5 px, 3 robust sigma)) and adjust it
     #: again (``mapper_worker.final_filter``): pose AUC@5 on the generated 250-photo block 0.972 -> 0.993.
     final_filter: bool = True
+    #: After mapping, the verified pairs each model's poses contradict (``stages.modelcheck``): a folded model
+    #: is said to be one. Reports only; the models are left as they are.
+    model_check: ModelCheckConfig = field(default_factory=ModelCheckConfig)
     seed: int = 0
     #: Names of the feature and match files made in the output folder (``--conf`` names them
     #: hloc-style, feats-<conf>.h5 and matches-<conf>_pairs.h5, so several presets' files coexist).

@@ -44,6 +44,7 @@ from ..stages.mapping import (
     write_models,
 )
 from ..stages.match import match_features
+from ..stages.modelcheck import check_model
 from ..stages.pairs import make_pairs, read_pairs, write_pairs
 from ..stages.principal_point import PrincipalPointPlan, plan_principal_point
 from ..stages.refine import refine_keypoints, refine_summary
@@ -56,6 +57,7 @@ from .report import (
     check_enough_matches,
     explain_models,
     explain_no_model,
+    folded_warning,
     match_statistics,
     summarize_matches,
     unregistered_report,
@@ -305,6 +307,20 @@ def georeferencing(run: Run, s: Reconstruction) -> Reconstruction:
     return s
 
 
+def model_check(run: Run, s: Reconstruction) -> Reconstruction:
+    """Each written model checked against the verified pairs it should explain (``stages.modelcheck``); a model
+    that may be folded is said so (a warning, the summary, ``stats.json`` ``model_check``)."""
+    pycolmap = require_pycolmap()
+    records = []
+    for entry in s.stats["models"]:
+        checked = check_model(pycolmap.Reconstruction(entry["path"]), s.database, s.config.model_check)
+        records.append({"path": entry["path"], **checked})
+        if checked["suspect"]:
+            logger.warning("warning: %s", folded_warning(records[-1]))
+    s.stats["model_check"] = records
+    return s
+
+
 #: ``sekd reconstruct``, step by step (untimed steps are checks and bookkeeping, not stages of the record's timings).
 RECONSTRUCT: tuple[Step, ...] = (
     Step("options", check_options, timed=False),
@@ -320,6 +336,7 @@ RECONSTRUCT: tuple[Step, ...] = (
     Step("view graph", view_graph, when=lambda s: s.config.view_graph.enabled),
     Step("mapping", mapping),
     Step("georeference", georeferencing, timed=False),
+    Step("model check", model_check, when=lambda s: s.config.model_check.enabled),
 )
 
 

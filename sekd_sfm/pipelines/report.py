@@ -199,6 +199,15 @@ def unregistered_reason(name: str, stats: dict, where: dict[str, int], group: li
             "(no initial pair: too few inliers or too little parallax)")
 
 
+def folded_warning(check: dict) -> str:
+    """One line: a model (``check``: its ``model_check`` record) that verified pairs contradict may be folded."""
+    strongest = check["strongest"][0]
+    return (f"{check['path']} may be folded or twisted (look-alike structure joined): {check['strong_contradicting']}"
+            f" strong verified pairs contradict its poses, the strongest {strongest['pair'][0]} - "
+            f"{strongest['pair'][1]} with {strongest['inliers']} inliers, {strongest['agreement']:.0%} of them "
+            "fitting the model; check it against photos or known cameras before use")
+
+
 def format_summary(stats: dict) -> str:
     """The one-screen summary of a run's record (``record.STATS``, as a dictionary)."""
     lines = [f"reconstruction: {stats['status']}" + (f" ({stats['failure']})" if stats.get("failure") else "")]
@@ -229,6 +238,9 @@ def format_summary(stats: dict) -> str:
     elif graph and graph.get("pairs"):
         lines.append(f"  view graph         {graph['dropped']} of {graph['pairs']} verified pairs dropped: their rotation "
                      f"disagrees with the others' by more than {graph['threshold_deg']:.1f} deg")
+    for check in stats.get("model_check") or []:
+        if check.get("suspect"):
+            lines.append(f"  model check        {folded_warning(check)}")
     filtered = stats.get("final_filter")
     if filtered and "threshold_px" in filtered:
         lines.append(f"  final filter       {filtered['removed_observations']} of {filtered['observations']} observations "
