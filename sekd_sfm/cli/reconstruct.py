@@ -143,6 +143,31 @@ chance_option = click.option(
          "lists the drops.")
 
 
+def _keyframe_count(ctx, param, value: str) -> int | None:
+    """--keyframes: ``auto`` (None) or a count of at least 2."""
+    if value == "auto":
+        return None
+    try:
+        count = int(value)
+    except ValueError:
+        count = 0
+    if count < 2:
+        raise click.BadParameter(f"{value!r}: give auto or a number of keyframes per video (2 or more)")
+    return count
+
+
+video_options = option_group(
+    "video",
+    click.option("--keyframes", default="auto", show_default=True, callback=_keyframe_count, metavar="auto|N",
+                 help="Videos in IMAGES (mp4, mov, avi, mkv, ...): which frames become photos, written as "
+                      "OUTPUT/images/<video>/<frame>.jpg. auto: a sharp frame whenever the view moved 5% of the "
+                      "image since the last keyframe (blurred frames skipped); N: the sharpest frame of each of N "
+                      "equal spans of every video. docs/captures.md."),
+    click.option("--max-fps", type=click.FloatRange(min=0.1), default=10.0, show_default=True,
+                 help="Frames of a video looked at per second, at most."),
+)
+
+
 def mapping_options(*, verification: bool = True) -> Decorator:
     """The group ``mapping``: --mapper-type, --mapper, --refine, --verification (if ``verification``) and --seed,
     how matches become a model."""
@@ -194,11 +219,12 @@ def run_options(execution: OptionValues, num_threads: int | None) -> RunOptions:
 
 
 @click.command()
-@click.argument("images", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("images", type=click.Path(path_type=Path))
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output folder: features.h5, pairs.txt, matches.h5, database.db, model/, stats.json, colmap.log.")
 @conf_option
 @extraction_options(resize_help=RECONSTRUCT_RESIZE_HELP, masks=True)
+@video_options
 @num_threads_option
 @pairing_options
 @matching_options
@@ -223,11 +249,15 @@ def run_options(execution: OptionValues, num_threads: int | None) -> RunOptions:
               help="With --extend: let the earlier cameras' poses and intrinsics move too (the mapper's bundle "
                    "adjustments refine them with the new ones); by default they stay bitwise as they were.")
 @execution_options
-def reconstruct(images: Path, output: Path, conf: str | None, extraction: OptionValues, num_threads: int | None,
-                pairing: OptionValues, matching: OptionValues, camera: OptionValues, mapping: OptionValues,
+def reconstruct(images: Path, output: Path, conf: str | None, extraction: OptionValues, video: OptionValues,
+                num_threads: int | None, pairing: OptionValues, matching: OptionValues, camera: OptionValues, mapping: OptionValues,
                 adapt: bool, features_file: Path | None, matches_file: Path | None, gps: str, extend: bool,
                 extend_refine: bool, execution: OptionValues) -> None:
     """Reconstruct cameras and 3D points from the images below IMAGES (COLMAP SfM through pycolmap).
+
+    IMAGES is a folder of photos, a video, or a folder of videos and photos: each video's
+    keyframes (--keyframes) become photos in OUTPUT/images, one camera per video, paired in
+    sequence and by retrieval (the loops a walk closes).
 
     \b
     Runs extract, pairs and match when their outputs are missing in OUTPUT (reusing them
@@ -255,6 +285,8 @@ def reconstruct(images: Path, output: Path, conf: str | None, extraction: Option
       sekd reconstruct photos/ -o out/ --feature sift --camera-mode single --mapper mapper.init_min_tri_angle=8
       sekd reconstruct photos/ -o out/ --features hloc/feats.h5 --matches hloc/matches.h5 --pairs-file hloc/pairs.txt
       sekd reconstruct photos/ -o out/ --extend                   # add photos copied into photos/ since the run
+      sekd reconstruct walk.mp4 -o out/                           # a video: its keyframes mapped
+      sekd reconstruct clips/ -o out/ --keyframes 80              # 80 keyframes from each video in clips/
     """
     from sekd_sfm.pipelines.reconstruct import ReconstructionError
     from sekd_sfm.pipelines.reconstruct import reconstruct as run
@@ -264,6 +296,7 @@ def reconstruct(images: Path, output: Path, conf: str | None, extraction: Option
     # What --extend checks, of the configuration the options made (before --gps and --adapt's weights)
     extension = _extend_options(config, given, pairing, extend_refine) if extend else None
     config.gps.mode = gps
+    config.keyframes.count, config.keyframes.max_fps = video["keyframes"], video["max_fps"]
     options = run_options(execution, num_threads)
     if adapt:  # new weights
         adapt_in_line(images, output, config.features, options.num_threads, options.progress)

@@ -14,6 +14,7 @@ from ..features import FeatureConfig
 from ..stages.chance import ChanceConfig
 from ..stages.database import CameraConfig
 from ..stages.georef import GpsConfig
+from ..stages.keyframes import KeyframeConfig
 from ..stages.match import MatchConfig
 from ..stages.modelcheck import ModelCheckConfig
 from ..stages.pairs import PairsConfig
@@ -48,6 +49,8 @@ class ReconstructConfig:
     #: Keypoint refinement between matching and the database (``refine.py``): on the generated
     #: 250-photo block pose AUC@5 0.971 -> 0.980, reprojection error 0.39 -> 0.22 px.
     refine: RefineConfig = field(default_factory=RefineConfig)
+    #: Keyframes of the input's videos (``stages.keyframes``): by motion and sharpness, or a fixed count per video.
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     #: Right after verification, drop the verified pairs whose inliers chance alone would give (``stages.chance``:
     #: far-apart photos of like columns verified at 15-25 inliers).
     chance: ChanceConfig = field(default_factory=ChanceConfig)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +21,7 @@ from ..execution import RayOptions
 from ..files import features as ff
 from ..files import matches as mf
 from ..files.images import list_images
+from ..files.video import is_video, list_videos
 from ..runtime import package_versions
 from ..stages.chance import check_chance
 from ..stages.colmap import clean_logs, colmap_log, log_prefix, require_pycolmap
@@ -33,6 +34,7 @@ from ..stages.database import (
 )
 from ..stages.extract import changed_masks, extract_features
 from ..stages.georef import GpsPlan, georeference, photo_names, plan_gps, write_georef
+from ..stages.keyframes import extract_keyframes, link_photos
 from ..stages.mapping import (
     clean_scratch,
     mapper_options,
@@ -98,6 +100,8 @@ class Reconstruction:
     model: Path | None = None
     #: Photos were extracted again because their mask changed: the reused matches of their pairs are stale.
     rematch: bool = False
+    #: The input as given when it holds videos (a video, or a folder of videos and photos), else None.
+    captures: Path | None = None
 
 
 def reconstruct(image_dir: str | Path, output_dir: str | Path, config: ReconstructConfig | None = None, *,
@@ -128,11 +132,14 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
     image_dir, out = Path(image_dir), Path(output_dir)
     _check_inputs(image_dir, features, matches)
     if extend is not None:
+        if list_videos(image_dir):
+            raise SekdError(f"{image_dir}: --extend takes photos; videos are mapped by a run of their own")
         if features is not None or options.overwrite:
             raise SekdError("--extend adds photos to OUTPUT's own files: leave out --features, --matches, --overwrite")
         return extend_model(image_dir, out, extend, options, weights=config.features.weights)
     state = Reconstruction(image_dir, config, _new_record(image_dir, config, features, matches),
-                           features=Path(features) if features else None, matches=Path(matches) if matches else None)
+                           features=Path(features) if features else None, matches=Path(matches) if matches else None,
+                           captures=image_dir if list_videos(image_dir) else None)
     with Run(out, options, lock="reconstruction folder") as run:
         clean_scratch(out)  # left by a killed run: nobody else can be using them while we hold the lock
         clean_logs(out / record.COLMAP_LOG)
@@ -140,8 +147,10 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
 
 
 def _check_inputs(image_dir: Path, features: str | Path | None, matches: str | Path | None) -> None:
-    if not image_dir.is_dir():
-        raise SekdError(f"{image_dir}: not a folder of images; give the folder holding the photos")
+    if not image_dir.is_dir() and not is_video(image_dir):
+        raise SekdError(f"{image_dir}: not a folder of images or a video; give the folder holding the photos")
+    if list_videos(image_dir) and features is not None:
+        raise SekdError(f"{image_dir}: holds videos, whose keyframes are chosen by this run: leave out --features")
     if matches is not None and features is None:
         raise SekdError(f"--matches {matches}: also give the feature file these matches index (--features)")
     for what, path in (("--features", features), ("--matches", matches)):
@@ -173,6 +182,28 @@ def _recorded(run: Run, state: Reconstruction, steps: Sequence[Step]) -> Path:
 
 
 # ----------------------------------------------------------------------------- the steps, in order
+
+def keyframes(run: Run, s: Reconstruction) -> Reconstruction:
+    """The keyframes of the input's videos written to OUT/images (``stages.keyframes``), its photos linked there:
+    OUT/images is the run's photo folder. Pairs for video at ``auto``: sequential, with retrieval pairs for loop
+    closure."""
+    s.image_dir = run.out / record.IMAGES
+    made = extract_keyframes(s.captures, s.image_dir, s.config.keyframes, run.progress)
+    link_photos(s.captures, s.image_dir)
+    s.stats["images_dir"] = str(s.image_dir)
+    s.stats["keyframes"] = {name: {k: v for k, v in entry.items() if k != "keyframes"} | {
+        "keyframes": len(entry["keyframes"])} for name, entry in made["videos"].items()}
+    if s.config.pairs.mode == "auto":
+        pairs = replace(s.config.pairs, mode="sequential",
+                        num_neighbors=s.config.pairs.num_neighbors or VIDEO_LOOP_NEIGHBORS)
+        s.config = replace(s.config, pairs=pairs)
+        s.stats["config"]["pairs"] = config_dict(s.config)["pairs"]
+    return s
+
+
+#: Retrieval neighbours per keyframe added to a video's sequential pairs: the loops a walk closes.
+VIDEO_LOOP_NEIGHBORS = 10
+
 
 def check_options(run: Run, s: Reconstruction) -> Reconstruction:
     """pycolmap's mapper and two-view options of the configuration, every option checked first (a typo fails in a
@@ -323,6 +354,7 @@ def model_check(run: Run, s: Reconstruction) -> Reconstruction:
 
 #: ``sekd reconstruct``, step by step (untimed steps are checks and bookkeeping, not stages of the record's timings).
 RECONSTRUCT: tuple[Step, ...] = (
+    Step("keyframes", keyframes, when=lambda s: s.captures is not None),
     Step("options", check_options, timed=False),
     Step("extract", extract),
     Step("pairs", pairs),

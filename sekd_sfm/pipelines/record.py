@@ -31,6 +31,8 @@ PAIRS = "pairs.txt"
 DATABASE = "database.db"
 COLMAP_LOG = "colmap.log"
 GEOREF = "georef.json"
+#: The photos of a run whose input holds videos: their keyframes (``stages.keyframes``), the input's photos linked.
+IMAGES = "images"
 MODEL = MAIN_MODEL
 MODELS = "models"
 
