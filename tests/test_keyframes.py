@@ -127,3 +127,17 @@ def test_reconstruct_a_video_and_a_photo_beside_it(pan, shared, tmp_path):
     assert [u["name"] for u in stats["unregistered"]] == ["still.jpg"]
     bad = CliRunner().invoke(sekd, ["reconstruct", str(folder), "-o", str(out), "--keyframes", "1"])
     assert bad.exit_code == 2 and "give auto or a number of keyframes per video" in bad.output
+
+
+def test_extract_a_video(pan, tmp_path):
+    """`sekd extract VIDEO -o OUT/features.h5`: keyframes in OUT/images, their features keyed <video>/<frame>.jpg."""
+    from sekd_sfm.cli.main import sekd
+    from sekd_sfm.files.features import list_keys
+
+    video, _ = pan
+    out = tmp_path / "out" / "features.h5"
+    result = CliRunner().invoke(sekd, ["-q", "extract", str(video), "-o", str(out), "--feature", "sift",
+                                       "--keyframes", "5", "--no-progress"])
+    assert result.exit_code == 0, result.output
+    record = json.loads((tmp_path / "out" / "images" / "keyframes.json").read_text())
+    assert list_keys(out) == [k["name"] for k in record["videos"]["pan"]["keyframes"]]

@@ -232,3 +232,28 @@ def executor_options(f):
         return f(*args, executor=execution["executor"], ray_options=ray_options(execution), **kwargs)
 
     return option_group("execution", executor_declarations)(command)
+
+
+def _keyframe_count(ctx, param, value: str) -> int | None:
+    """--keyframes: ``auto`` (None) or a count of at least 2."""
+    if value == "auto":
+        return None
+    try:
+        count = int(value)
+    except ValueError:
+        count = 0
+    if count < 2:
+        raise click.BadParameter(f"{value!r}: give auto or a number of keyframes per video (2 or more)")
+    return count
+
+
+video_options = option_group(
+    "video",
+    click.option("--keyframes", default="auto", show_default=True, callback=_keyframe_count, metavar="auto|N",
+                 help="Videos in IMAGES (mp4, mov, avi, mkv, ...): which frames become photos, written as "
+                      "OUTPUT/images/<video>/<frame>.jpg. auto: a sharp frame whenever the view moved 5% of the "
+                      "image since the last keyframe (blurred frames skipped); N: the sharpest frame of each of N "
+                      "equal spans of every video. docs/captures.md."),
+    click.option("--max-fps", type=click.FloatRange(min=0.1), default=10.0, show_default=True,
+                 help="Frames of a video looked at per second, at most."),
+)

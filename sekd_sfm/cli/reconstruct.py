@@ -32,6 +32,7 @@ from .options import (
     num_threads_option,
     option_group,
     ray_options,
+    video_options,
 )
 from .presets import conf_option, feature_and_match_configs
 
@@ -141,31 +142,6 @@ chance_option = click.option(
          "Learned features keep more matches between photos that share no surface than SIFT; on like columns or "
          "facades such pairs verify at 15-25 inliers, are wrong, and split or fold the model. stats.json chance "
          "lists the drops.")
-
-
-def _keyframe_count(ctx, param, value: str) -> int | None:
-    """--keyframes: ``auto`` (None) or a count of at least 2."""
-    if value == "auto":
-        return None
-    try:
-        count = int(value)
-    except ValueError:
-        count = 0
-    if count < 2:
-        raise click.BadParameter(f"{value!r}: give auto or a number of keyframes per video (2 or more)")
-    return count
-
-
-video_options = option_group(
-    "video",
-    click.option("--keyframes", default="auto", show_default=True, callback=_keyframe_count, metavar="auto|N",
-                 help="Videos in IMAGES (mp4, mov, avi, mkv, ...): which frames become photos, written as "
-                      "OUTPUT/images/<video>/<frame>.jpg. auto: a sharp frame whenever the view moved 5% of the "
-                      "image since the last keyframe (blurred frames skipped); N: the sharpest frame of each of N "
-                      "equal spans of every video. docs/captures.md."),
-    click.option("--max-fps", type=click.FloatRange(min=0.1), default=10.0, show_default=True,
-                 help="Frames of a video looked at per second, at most."),
-)
 
 
 def mapping_options(*, verification: bool = True) -> Decorator:

@@ -35,6 +35,16 @@ def list_videos(root: str | Path) -> list[Path]:
     return sorted(p for p in root.rglob("*") if p.suffix.lower() in VIDEO_EXTENSIONS and p.is_file())
 
 
+def _quiet_opencv() -> None:
+    """OpenCV's own warnings (e.g. FFmpeg failing to open a file) off: our error says it in one line."""
+    import cv2
+
+    try:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    except AttributeError:  # builds without the logging module
+        pass
+
+
 class VideoReader:
     """One video, opened for streaming. ``fps`` (frames per second; 0 when the file does not say), ``frame_count``
     (what the container claims; 0 when unknown), ``size`` (width, height). Iterating yields
@@ -44,6 +54,7 @@ class VideoReader:
     def __init__(self, path: str | Path):
         import cv2
 
+        _quiet_opencv()
         self.path = Path(path)
         self.broken: int | None = None  # index of the first frame that could not be decoded, if the video broke
         self._capture = cv2.VideoCapture(str(self.path), cv2.CAP_FFMPEG)
