@@ -1,5 +1,6 @@
 """The stages, each one module, in the order data flows through them.
 
+    keyframes   videos -> images/<video>/<frame>.jpg  (sharp frames, by motion or a count per video)
     extract     images -> features.h5                 (keypoints, descriptors; the global descriptors: retrieval)
     pairs       features.h5 -> pairs.txt              (exhaustive, sequential, retrieval, GPS neighbours)
     match       features.h5 + pairs.txt -> matches.h5
