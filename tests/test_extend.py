@@ -94,6 +94,8 @@ def test_earlier_cameras_stay_bitwise_and_new_photos_register(scene, extended):
     assert sorted(record["registered"]) == sorted(set(ids_after) - set(ids_before)) and record["unregistered"] == []
     # The final filter ran on the extended model with the earlier cameras constant (they are bitwise above).
     assert record["final_filter"]["threshold_px"] >= 0.5 and record["final_filter"]["observations"] > 0
+    assert record["model_check"]["pairs"] > 0 and not record["model_check"]["suspect"]  # the extended model agrees
+    assert record["chance"]["verified"] > 0  # the chance check ran on the new pairs too
     assert stats["model"]["registered_images"] == ALL
     assert not (extended / "extend").exists() and not (extended / "model.backup").exists()
 

@@ -61,6 +61,7 @@ from ..stages.mapping import (
     run_mapper,
 )
 from ..stages.match import match_features
+from ..stages.modelcheck import check_model as check_folded
 from ..stages.pairs import (
     PairsConfig,
     generate_pairs,
@@ -83,7 +84,12 @@ from .extend_commit import (
     stage_model,
     write_journal,
 )
-from .report import match_statistics, summarize_matches, unregistered_report
+from .report import (
+    folded_warning,
+    match_statistics,
+    summarize_matches,
+    unregistered_report,
+)
 from .run import Run, RunOptions, Step, run_steps
 
 if TYPE_CHECKING:
@@ -332,6 +338,11 @@ def check_model(run: Run, s: Extension) -> Extension:
     s.entry["registered"] = [n for n in s.added if n in names]
     s.entry["unregistered"] = unregistered_report([n for n in s.added if n not in names], s.match_stats,
                                                   dict.fromkeys(names, 0))
+    if s.config.model_check.enabled:  # a new photo placed on a look-alike can fold the model too
+        s.entry["model_check"] = {"path": str(run.out / record.MODEL),
+                                  **check_folded(s.model, s.database, s.config.model_check)}
+        if s.entry["model_check"]["suspect"]:
+            logger.warning("warning: %s", folded_warning(s.entry["model_check"]))
     s.entry["mapper"] = {"type": "incremental, continuing from model/", "fix_existing_frames":
                          bool(s.mapper.fix_existing_frames), "constant_cameras": sorted(s.mapper.constant_cameras),
                          "ba_refine_principal_point": bool(s.mapper.ba_refine_principal_point)}
