@@ -84,6 +84,23 @@ def test_a_fixed_count_the_rerun_and_new_settings(pan, tmp_path):
     assert len(list(images.rglob("*.jpg"))) == 4 == len(again["videos"]["pan"]["keyframes"])
 
 
+def test_featureless_frames_are_never_keyframes(shared, tmp_path):
+    """Half a second of a covered lens (flat grey) before the pan: no keyframe among those frames, and no run of
+    them either (their motion cannot be measured)."""
+    video = tmp_path / "covered.avi"
+    write_pan(shared, tmp_path / "pan.avi", frames=60)
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (WIDTH, HEIGHT))
+    for _ in range(15):
+        writer.write(np.full((HEIGHT, WIDTH, 3), 128, np.uint8))
+    with VideoReader(tmp_path / "pan.avi") as reader:
+        for _, _, frame in reader:
+            writer.write(frame)
+    writer.release()
+    record = extract_keyframes(video, tmp_path / "images", progress=False)
+    frames = [k["frame"] for k in record["videos"]["covered"]["keyframes"]]
+    assert frames and min(frames) >= 15
+
+
 def test_a_truncated_video_keeps_the_frames_before_the_damage(pan, tmp_path, caplog):
     video, _ = pan
     cut = tmp_path / "cut.avi"

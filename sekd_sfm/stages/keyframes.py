@@ -43,6 +43,8 @@ from ..files.video import VideoReader, list_videos
 logger = logging.getLogger("sekd")
 
 RECORD = "keyframes.json"
+#: A frame with fewer corners is featureless: never a keyframe (nothing to map, no motion to measure).
+MIN_CORNERS = 8
 FORMAT = "sekd-keyframes/1"
 
 
@@ -96,17 +98,22 @@ class MotionTracker:
         self.reference: np.ndarray | None = None
         self.corners: np.ndarray | None = None
 
-    def reset(self, gray: np.ndarray) -> None:
+    @staticmethod
+    def corners_of(gray: np.ndarray) -> np.ndarray:
+        """Up to 300 corners of ``gray`` (N x 1 x 2, float32; N = 0 on a featureless frame)."""
         import cv2
 
-        self.reference = gray
-        self.corners = cv2.goodFeaturesToTrack(gray, maxCorners=300, qualityLevel=0.01, minDistance=8)
+        found = cv2.goodFeaturesToTrack(gray, maxCorners=300, qualityLevel=0.01, minDistance=8)
+        return found if found is not None else np.zeros((0, 1, 2), np.float32)
+
+    def reset(self, gray: np.ndarray, corners: np.ndarray) -> None:
+        self.reference, self.corners = gray, corners
 
     def motion(self, gray: np.ndarray) -> tuple[float, float]:
         """(median corner motion as a share of the long side, share of the corners followed)."""
         import cv2
 
-        if self.corners is None or len(self.corners) < 8:
+        if self.corners is None or len(self.corners) < MIN_CORNERS:
             return 0.0, 0.0
         moved, status, _ = cv2.calcOpticalFlowPyrLK(self.reference, gray, self.corners, None, winSize=(21, 21),
                                                     maxLevel=4)
@@ -189,8 +196,11 @@ def select_keyframes(reader: VideoReader, name: str, config: KeyframeConfig, wri
             moved, followed = tracker.motion(gray)
             if moved < config.min_motion and followed >= 0.5:
                 continue
+        corners = tracker.corners_of(gray)
+        if len(corners) < MIN_CORNERS:  # featureless (a blank wall, a covered lens): nothing to map or track
+            continue
         keyframes.append(_take((value, index, time_s, frame), name, write))
-        tracker.reset(gray)
+        tracker.reset(gray, corners)
     if best is not None:
         keyframes.append(_take(best, name, write))
     return {"size": list(reader.size), "fps": reader.fps, "frame_count": reader.frame_count,
