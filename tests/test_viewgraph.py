@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sekd_sfm.evaluation.metrics import rotation_angles_deg
 from sekd_sfm.stages.colmap import require_pycolmap
 from sekd_sfm.stages.viewgraph import (
     Edge,
     ViewGraphConfig,
     calibrate_focal_lengths,
     find_inconsistent,
-    rotation_angle_deg,
 )
 
 pycolmap = require_pycolmap()
@@ -78,9 +78,9 @@ def test_consistent_graphs_and_graphs_without_loops_lose_nothing():
 def test_rotation_angle():
     rng = np.random.default_rng(3)
     R = _rotation(rng, 30.0)
-    assert rotation_angle_deg(np.eye(3)) == pytest.approx(0.0, abs=1e-6)
-    assert rotation_angle_deg(np.diag([1.0, -1.0, -1.0])) == pytest.approx(180.0)
-    assert rotation_angle_deg(R @ R.T) == pytest.approx(0.0, abs=1e-5)
+    assert rotation_angles_deg(np.eye(3)) == pytest.approx(0.0, abs=1e-6)
+    assert rotation_angles_deg(np.diag([1.0, -1.0, -1.0])) == pytest.approx(180.0)
+    assert rotation_angles_deg(R @ R.T) == pytest.approx(0.0, abs=1e-5)
 
 
 def _fundamental(K1, K2, R, t) -> np.ndarray:

@@ -56,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SekdError
-from ..evaluation.metrics import rotation_angle_deg
+from ..evaluation.metrics import fundamental_matrix, rotation_angle_deg
 from ..evaluation.strecha import angle_between_deg, read_cameras, relative_pose
 from ..files.atomic import write_atomic
 
@@ -212,12 +212,6 @@ def relative_pose_of_matches(x0: np.ndarray, x1: np.ndarray, K0: np.ndarray, K1:
     return np.asarray(pose.rotation.matrix()), np.asarray(pose.translation), int(found["num_inliers"])
 
 
-def fundamental(K0: np.ndarray, K1: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """F with ``x1^T F x0 = 0`` for OpenCV pixel points of cameras K0, K1 with camera 1 from camera 0 ``(R, t)``."""
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    return np.linalg.inv(K1).T @ tx @ R @ np.linalg.inv(K0)
-
-
 def _config_name(config) -> str:
     """COLMAP's two-view configuration by name (``calibrated``, ``planar``, ...); the database gives a number."""
     from ..stages.colmap import require_pycolmap
@@ -297,7 +291,7 @@ def score_matches(x0: np.ndarray, x1: np.ndarray, truth0, truth1, *, max_error_d
 
     (K0, R0, t0), (K1, R1, t1) = truth0, truth1
     R_true, t_true = relative_pose((R0, t0), (R1, t1))
-    distances = epipolar_distances(x0, x1, fundamental(K0, K1, R_true, t_true))
+    distances = epipolar_distances(x0, x1, fundamental_matrix(K0, K1, R_true, t_true))
     true_inliers = int(np.sum(distances <= max_error_px))
     result = {"true_inliers": true_inliers, "true_inlier_fraction": round(true_inliers / len(x0), 4),
               "median_true_epipolar_px": round(float(np.median(distances)), 3)}
@@ -307,7 +301,7 @@ def score_matches(x0: np.ndarray, x1: np.ndarray, truth0, truth1, *, max_error_d
         pose_inliers, pose_off = len(x0), True
     else:
         R_est, t_est, _ = estimated
-        pose_inliers = int(np.sum(epipolar_distances(x0, x1, fundamental(K0, K1, R_est, t_est)) <= max_error_px))
+        pose_inliers = int(np.sum(epipolar_distances(x0, x1, fundamental_matrix(K0, K1, R_est, t_est)) <= max_error_px))
         rotation, translation = rotation_angle_deg(R_est.T @ R_true), angle_between_deg(t_est, t_true)
         pose_off = not (rotation <= max_error_deg and translation <= max_error_deg)  # nan (no baseline): off
     support = true_inliers / max(pose_inliers, 1)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SekdError
-from ..evaluation.metrics import mean_average_accuracy, pose_auc
+from ..evaluation.metrics import fundamental_matrix, mean_average_accuracy, pose_auc
 from ..features import FeatureConfig
 from ..files.atomic import write_json
 from ..files.features import read_attrs, read_features
@@ -188,8 +188,7 @@ def sfm_markdown(report: dict) -> str:
 def fundamental(cam0: StrechaCamera, cam1: StrechaCamera) -> np.ndarray:
     """F with ``x1^T F x0 = 0`` for pixel points of the two ground-truth cameras."""
     R, t = relative_pose(cam0.cam_from_world, cam1.cam_from_world)
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    return np.linalg.inv(cam1.K).T @ tx @ R @ np.linalg.inv(cam0.K)
+    return fundamental_matrix(cam0.K, cam1.K, R, t)
 
 
 def epipolar_distances(x0: np.ndarray, x1: np.ndarray, F: np.ndarray) -> np.ndarray:

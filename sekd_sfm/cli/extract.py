@@ -59,16 +59,11 @@ def extract(images: Path, output: Path | None, conf: str | None, extraction: Opt
     if output is None:
         output = images.parent / (output_names(conf)[0] if conf else f"features-{config.feature}.h5")
     if list_videos(images):
-        from sekd_sfm.stages.keyframes import (
-            KeyframeConfig,
-            extract_keyframes,
-            link_photos,
-        )
+        from sekd_sfm.stages.keyframes import KeyframeConfig, prepare_captures
 
         root = output.parent / "images"
-        extract_keyframes(images, root, KeyframeConfig(count=video["keyframes"], max_fps=video["max_fps"]),
-                          progress=not no_progress)
-        link_photos(images, root)
+        prepare_captures(images, root, KeyframeConfig(count=video["keyframes"], max_fps=video["max_fps"]),
+                         progress=not no_progress)
         images = root
     path = extract_features(images, output, config, overwrite=overwrite, strict=strict, num_threads=num_threads,
                             progress=not no_progress, executor=executor, ray_options=ray_options,

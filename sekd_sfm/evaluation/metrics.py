@@ -59,9 +59,27 @@ def repeatability(kp0: np.ndarray, kp1: np.ndarray, homography: np.ndarray, size
     return float(repeated / (len(a) + len(b)))
 
 
+def rotation_angles_deg(rotations: np.ndarray) -> np.ndarray:
+    """Angles (degrees) of rotation matrices ``... x 3 x 3`` (robust to rounding outside [-1, 1])."""
+    cos = (np.trace(rotations, axis1=-2, axis2=-1) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def rotation_angle_deg(rotation: np.ndarray) -> float:
     """Angle of a rotation matrix in degrees (robust to rounding outside [-1, 1])."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
+    return float(rotation_angles_deg(rotation))
+
+
+def essential_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``[t]x R``: the essential matrix of camera 1 from camera 0 ``(R, t)``, ``x1^T E x0 = 0`` in normalized
+    coordinates."""
+    t = np.asarray(t, np.float64).ravel()
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ np.asarray(R)
+
+
+def fundamental_matrix(K0: np.ndarray, K1: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """F with ``x1^T F x0 = 0`` for pixel points of cameras ``K0``, ``K1``, camera 1 from camera 0 ``(R, t)``."""
+    return np.linalg.inv(K1).T @ essential_matrix(R, t) @ np.linalg.inv(K0)
 
 
 def rotation_error_deg(r_est: np.ndarray, r_gt: np.ndarray) -> float:

@@ -56,6 +56,7 @@ from ..stages.extract import extract_features
 from ..stages.mapping import (
     clean_scratch,
     default_options,
+    min_model_size,
     model_stats,
     registered_names,
     run_mapper,
@@ -337,7 +338,7 @@ def check_model(run: Run, s: Extension) -> Extension:
     names = set(registered_names(s.model))
     s.entry["registered"] = [n for n in s.added if n in names]
     s.entry["unregistered"] = unregistered_report([n for n in s.added if n not in names], s.match_stats,
-                                                  dict.fromkeys(names, 0))
+                                                  dict.fromkeys(names, 0), min_model_size(s.mapper))
     if s.config.model_check.enabled:  # a new photo placed on a look-alike can fold the model too
         s.entry["model_check"] = {"path": str(run.out / record.MODEL),
                                   **check_folded(s.model, s.database, s.config.model_check)}
@@ -361,7 +362,8 @@ def stage_record(run: Run, s: Extension) -> Extension:
     if stats.get("models"):
         stats["models"][0] = {**stats["models"][0], **model_stats(s.model), "images": sorted(names)}
     where = {**{n: k for k, m in enumerate(stats.get("models", [])) for n in m.get("images", [])}, **dict.fromkeys(names, 0)}
-    stats["unregistered"] = unregistered_report(sorted(set(s.match_stats["images"]) - set(where)), s.match_stats, where)
+    stats["unregistered"] = unregistered_report(sorted(set(s.match_stats["images"]) - set(where)), s.match_stats, where,
+                                                min_model_size(s.mapper))
     record.write_record(stats, s.stage)
     return s
 

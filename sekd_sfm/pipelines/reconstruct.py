@@ -34,10 +34,11 @@ from ..stages.database import (
 )
 from ..stages.extract import changed_masks, extract_features
 from ..stages.georef import GpsPlan, georeference, photo_names, plan_gps, write_georef
-from ..stages.keyframes import extract_keyframes, link_photos
+from ..stages.keyframes import prepare_captures
 from ..stages.mapping import (
     clean_scratch,
     mapper_options,
+    min_model_size,
     min_num_matches,
     model_stats,
     registered_names,
@@ -130,26 +131,27 @@ def reconstruct(image_dir: str | Path, output_dir: str | Path, config: Reconstru
     options = options or RunOptions(overwrite=overwrite, num_threads=num_threads, progress=progress,
                                     executor=executor, ray_options=ray_options)
     image_dir, out = Path(image_dir), Path(output_dir)
-    _check_inputs(image_dir, features, matches)
+    videos = bool(list_videos(image_dir))
+    _check_inputs(image_dir, features, matches, videos)
     if extend is not None:
-        if list_videos(image_dir):
+        if videos:
             raise SekdError(f"{image_dir}: --extend takes photos; videos are mapped by a run of their own")
         if features is not None or options.overwrite:
             raise SekdError("--extend adds photos to OUTPUT's own files: leave out --features, --matches, --overwrite")
         return extend_model(image_dir, out, extend, options, weights=config.features.weights)
     state = Reconstruction(image_dir, config, _new_record(image_dir, config, features, matches),
                            features=Path(features) if features else None, matches=Path(matches) if matches else None,
-                           captures=image_dir if list_videos(image_dir) else None)
+                           captures=image_dir if videos else None)
     with Run(out, options, lock="reconstruction folder") as run:
         clean_scratch(out)  # left by a killed run: nobody else can be using them while we hold the lock
         clean_logs(out / record.COLMAP_LOG)
         return _recorded(run, state, RECONSTRUCT if steps is None else steps)
 
 
-def _check_inputs(image_dir: Path, features: str | Path | None, matches: str | Path | None) -> None:
+def _check_inputs(image_dir: Path, features: str | Path | None, matches: str | Path | None, videos: bool) -> None:
     if not image_dir.is_dir() and not is_video(image_dir):
         raise SekdError(f"{image_dir}: not a folder of images or a video; give the folder holding the photos")
-    if list_videos(image_dir) and features is not None:
+    if videos and features is not None:
         raise SekdError(f"{image_dir}: holds videos, whose keyframes are chosen by this run: leave out --features")
     if matches is not None and features is None:
         raise SekdError(f"--matches {matches}: also give the feature file these matches index (--features)")
@@ -188,8 +190,7 @@ def keyframes(run: Run, s: Reconstruction) -> Reconstruction:
     OUT/images is the run's photo folder. Pairs for video at ``auto``: sequential, with retrieval pairs for loop
     closure."""
     s.image_dir = run.out / record.IMAGES
-    made = extract_keyframes(s.captures, s.image_dir, s.config.keyframes, run.progress)
-    link_photos(s.captures, s.image_dir)
+    made = prepare_captures(s.captures, s.image_dir, s.config.keyframes, run.progress)
     s.stats["images_dir"] = str(s.image_dir)
     s.stats["keyframes"] = {name: {k: v for k, v in entry.items() if k != "keyframes"} | {
         "keyframes": len(entry["keyframes"])} for name, entry in made["videos"].items()}
@@ -333,7 +334,7 @@ def georeferencing(run: Run, s: Reconstruction) -> Reconstruction:
     """The main model moved into a local east-north-up frame from the photos' GPS, where the plan says so."""
     georef = georeference(s.models, s.gps, s.config.gps, s.config.seed)  # models[0] moved into the ENU frame
     s.stats["georeference"] = {k: v for k, v in georef.items() if k != "per_image"}
-    s.model = _finish(s.models, s.match_stats, s.options, run.out, s.stats, s.database)
+    s.model, s.models = _finish(s.models, s.match_stats, s.options, run.out, s.stats, s.database)
     write_georef(run.out, georef)
     return s
 
@@ -341,10 +342,9 @@ def georeferencing(run: Run, s: Reconstruction) -> Reconstruction:
 def model_check(run: Run, s: Reconstruction) -> Reconstruction:
     """Each written model checked against the verified pairs it should explain (``stages.modelcheck``); a model
     that may be folded is said so (a warning, the summary, ``stats.json`` ``model_check``)."""
-    pycolmap = require_pycolmap()
     records = []
-    for entry in s.stats["models"]:
-        checked = check_model(pycolmap.Reconstruction(entry["path"]), s.database, s.config.model_check)
+    for model, entry in zip(s.models, s.stats["models"]):  # the models as written (``_finish``)
+        checked = check_model(model, s.database, s.config.model_check)
         records.append({"path": entry["path"], **checked})
         if checked["suspect"]:
             logger.warning("warning: %s", folded_warning(records[-1]))
@@ -415,7 +415,9 @@ def distinct_models(models: list) -> tuple[list, int]:
     return kept, len(models) - len(kept)
 
 
-def _finish(models: list, match_stats: dict, options, out: Path, stats: dict, database: Path) -> Path:
+def _finish(models: list, match_stats: dict, options, out: Path, stats: dict, database: Path) -> tuple[Path, list]:
+    """The models written (sub-models dropped: ``distinct_models``) and recorded; the main model's folder and the
+    models kept, in the order of ``stats["models"]``."""
     if not models:
         raise explain_no_model(match_stats, options, database)
     models, stats["dropped_submodels"] = distinct_models(models)
@@ -424,10 +426,11 @@ def _finish(models: list, match_stats: dict, options, out: Path, stats: dict, da
     stats["model"] = model_stats(models[0])
     stats["models"] = [{"path": str(p), **model_stats(m), "images": names} for p, m, names in zip(paths, models, groups)]
     where = {name: k for k, names in enumerate(groups) for name in names}
-    stats["unregistered"] = unregistered_report(sorted(set(match_stats["images"]) - set(where)), match_stats, where)
+    stats["unregistered"] = unregistered_report(sorted(set(match_stats["images"]) - set(where)), match_stats, where,
+                                                min_model_size(options))
     stats["output"] = str(paths[0])
     if len(models) > 1:
         message = explain_models(groups, match_stats, paths)
         stats["split"] = message.splitlines()[0]
         logger.warning("%s", message)
-    return paths[0]
+    return paths[0], models

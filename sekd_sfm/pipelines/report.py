@@ -142,10 +142,13 @@ def explain_models(groups: list[list[str]], stats: dict, paths: list[Path]) -> s
     )
 
 
-def unregistered_report(names: list[str], stats: dict, where: dict[str, int] | None = None) -> list[dict]:
+def unregistered_report(names: list[str], stats: dict, where: dict[str, int] | None = None,
+                        min_model_size: int | None = None) -> list[dict]:
     """For images in no model: keypoints, verified pairs, best inlier count, raw matches of their best pairs, and
     ``reason``, why the image is in no model (``unregistered_reason``). ``where``: image name -> index of the model
-    holding it (the images of no model left out)."""
+    holding it (the images of no model left out); ``min_model_size``: the mapper's (default: ``MIN_MODEL_SIZE``)."""
+    if min_model_size is None:
+        from ..stages.mapping import MIN_MODEL_SIZE as min_model_size
     where = where or {}
     groups = unmapped_groups(names, stats)
     report = []
@@ -153,7 +156,7 @@ def unregistered_report(names: list[str], stats: dict, where: dict[str, int] | N
         best = [(b if a == name else a, raw, inl) for a, b, raw, inl in stats["pairs"] if name in (a, b)][:3]
         item = {"name": name, **stats["images"].get(name, {}),
                 "best_pairs": [{"with": other, "matches": raw, "inliers": inl} for other, raw, inl in best]}
-        item["reason"] = unregistered_reason(name, stats, where, groups[name])
+        item["reason"] = unregistered_reason(name, stats, where, groups[name], min_model_size)
         report.append(item)
     return report
 
@@ -178,11 +181,9 @@ def unmapped_groups(names: list[str], stats: dict) -> dict[str, list[str]]:
     return {name: members[root(name)] for name in names}
 
 
-def unregistered_reason(name: str, stats: dict, where: dict[str, int], group: list[str]) -> str:
+def unregistered_reason(name: str, stats: dict, where: dict[str, int], group: list[str], min_model_size: int) -> str:
     """Why ``name`` is in no model, in one line: no verified pair; pairs with a model's photos that the mapper could
-    not register it from; or a group of photos in no model (too small, or no initial pair in it)."""
-    from ..stages.mapping import MIN_MODEL_SIZE
-
+    not register it from; or a group of photos in no model (fewer than ``min_model_size``, or no initial pair)."""
     image = stats["images"].get(name, {})
     if not image.get("verified_pairs"):
         return (f"no verified pair: its best pair has {image.get('best_inliers', 0)} inliers, a pair needs "
@@ -192,9 +193,9 @@ def unregistered_reason(name: str, stats: dict, where: dict[str, int], group: li
     if linked:
         return (f"verified pairs with photos of model {linked[0]}, but the mapper could not register it (too few of "
                 "its matches reach the model's 3D points, or its pose did not verify)")
-    if len(group) < MIN_MODEL_SIZE:
+    if len(group) < min_model_size:
         return (f"verified pairs only with {len(group) - 1} other photo(s) in no model: a model needs "
-                f"{MIN_MODEL_SIZE} photos")
+                f"{min_model_size} photos")
     return (f"one of {len(group)} photos linked only to each other, which the mapper could not start a model from "
             "(no initial pair: too few inliers or too little parallax)")
 

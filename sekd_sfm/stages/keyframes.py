@@ -254,7 +254,6 @@ def extract_keyframes(source: str | Path, image_dir: str | Path, config: Keyfram
                            video, entry["broken_at_frame"], entry["frame_count"], len(entry["keyframes"]))
         logger.info("%s: %d keyframes of %d frames (%d blurred frames skipped)", video, len(entry["keyframes"]),
                     entry["frames_read"], entry["blurred_skipped"])
-    write_atomic(record_path, json.dumps(record, indent=1))
     return record
 
 
@@ -270,6 +269,15 @@ def _read_record(path: Path, config: KeyframeConfig) -> dict:
         for keyframe in entry.get("keyframes", []):  # chosen under other settings: not photos of this run
             (path.parent / keyframe["name"]).unlink(missing_ok=True)
     return {"format": FORMAT, "config": asdict(config), "videos": {}}
+
+
+def prepare_captures(source: str | Path, image_dir: str | Path, config: KeyframeConfig | None = None,
+                     progress: bool = True) -> dict:
+    """``image_dir`` made the photo folder of ``source`` (a video, or a folder of videos and photos): its videos'
+    keyframes (``extract_keyframes``) and its photos (``link_photos``). Returns the keyframes record."""
+    made = extract_keyframes(source, image_dir, config, progress)
+    link_photos(source, image_dir)
+    return made
 
 
 def link_photos(source: str | Path, image_dir: str | Path) -> list[str]:

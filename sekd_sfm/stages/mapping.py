@@ -128,6 +128,12 @@ def min_num_matches(options) -> int:
     return int(inner.min_num_matches)
 
 
+def min_model_size(options) -> int:
+    """The fewest photos a model keeps in the mapper of ``options`` (hierarchical: its clusters')."""
+    inner = getattr(options, "incremental_options", options)
+    return int(inner.min_model_size)
+
+
 def initial_pair_options(options):
     """The incremental mapper's initial-pair settings (``mapper.init_*``), or None for the global mapper."""
     inner = getattr(options, "incremental_options", options)

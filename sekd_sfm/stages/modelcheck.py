@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..evaluation.metrics import essential_matrix
 from .colmap import open_database, require_pycolmap
 
 
@@ -42,16 +43,12 @@ class ModelCheckConfig:
     listed: int = 10
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
 def model_essential(reconstruction, image1: int, image2: int) -> np.ndarray:
     """The 3 x 3 essential matrix (normalized camera coordinates of image1 -> epipolar lines in image2's) of two
     registered images as ``reconstruction`` poses them."""
     a, b = reconstruction.images[image1], reconstruction.images[image2]
     relative = b.cam_from_world() * a.cam_from_world().inverse()
-    return _skew(np.asarray(relative.translation)) @ np.asarray(relative.rotation.matrix())
+    return essential_matrix(relative.rotation.matrix(), relative.translation)
 
 
 def sampson2(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:

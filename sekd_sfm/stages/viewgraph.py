@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..evaluation.metrics import rotation_angles_deg
 from .colmap import open_database, require_pycolmap
 
 logger = logging.getLogger("sekd")
@@ -186,12 +187,6 @@ def calibrate_focal_lengths(cameras: dict, pairs: list[tuple[int, int, np.ndarra
     return estimates
 
 
-def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
-    """Angles (deg) of rotation matrices ``... x 3 x 3``."""
-    cos = (np.trace(R, axis1=-2, axis2=-1) - 1) / 2
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
 def _project(M: np.ndarray) -> np.ndarray:
     """The nearest rotation to each 3 x 3 matrix of ``M`` (``... x 3 x 3``), by SVD."""
     U, _, Vt = np.linalg.svd(M)
@@ -239,7 +234,7 @@ def average_rotations(R: np.ndarray, a: np.ndarray, b: np.ndarray, Rab: np.ndarr
     """Refine rotations ``R`` (``n x 3 x 3``) to agree with the pairs: iteratively reweighted chordal averaging,
     each pair weighted by ``weights`` times a Cauchy weight of its disagreement (``scale_deg``)."""
     for _ in range(iterations):
-        residual = rotation_angle_deg(Rab @ R[a] @ R[b].transpose(0, 2, 1))
+        residual = rotation_angles_deg(Rab @ R[a] @ R[b].transpose(0, 2, 1))
         w = weights / (1 + (residual / scale_deg) ** 2)
         M = np.zeros_like(R)
         np.add.at(M, a, w[:, None, None] * (Rab.transpose(0, 2, 1) @ R[b]))  # a's rotation as b's pair sees it
@@ -259,7 +254,7 @@ def disagreements(edges: list[Edge], config: ViewGraphConfig) -> np.ndarray:
     weights = np.sqrt(np.array([e.inliers for e in edges], np.float64))  # many inliers: a surer rotation
     R = spanning_rotations(len(ids), a, b, Rab, weights)
     R = average_rotations(R, a, b, Rab, weights, config.min_error_deg, config.iterations)
-    return rotation_angle_deg(Rab @ R[a] @ R[b].transpose(0, 2, 1))
+    return rotation_angles_deg(Rab @ R[a] @ R[b].transpose(0, 2, 1))
 
 
 def _threshold(residual: np.ndarray, config: ViewGraphConfig) -> float:
