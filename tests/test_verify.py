@@ -3,6 +3,7 @@ import time
 
 import numpy as np
 
+from sekd_sfm.evaluation.metrics import fundamental_matrix
 from sekd_sfm.stages.colmap import open_database, require_pycolmap
 from sekd_sfm.stages.database import VERIFY_MAX_TRIALS, two_view_options, verify_matches
 
@@ -34,10 +35,8 @@ def _true_pair(rng: np.random.Generator, num_inliers: int, num_outliers: int):
 
 def _fundamental(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """F (3, 3) with x1^T F x0 = 0 for pixels x0, x1 of the two views."""
-    inverse_k = np.linalg.inv(np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1]]))
-    cross = np.array([[0, -translation[2], translation[1]], [translation[2], 0, -translation[0]],
-                      [-translation[1], translation[0], 0]])
-    return inverse_k.T @ cross @ rotation @ inverse_k
+    K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1]])
+    return fundamental_matrix(K, K, rotation, translation)
 
 
 def _sampson_px(fundamental: np.ndarray, keypoints0: np.ndarray, keypoints1: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sekd_sfm.evaluation.metrics import rotation_angles_deg
+from sekd_sfm.evaluation.metrics import fundamental_matrix, rotation_angles_deg
 from sekd_sfm.stages.colmap import require_pycolmap
 from sekd_sfm.stages.viewgraph import (
     Edge,
@@ -83,11 +83,6 @@ def test_rotation_angle():
     assert rotation_angles_deg(R @ R.T) == pytest.approx(0.0, abs=1e-5)
 
 
-def _fundamental(K1, K2, R, t) -> np.ndarray:
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    return np.linalg.inv(K2).T @ tx @ R @ np.linalg.inv(K1)
-
-
 def test_focal_lengths_are_recovered_from_fundamental_matrices():
     """COLMAP's guess for a photo without EXIF is 1.2 x its long side; the fundamental matrices of its pairs say
     better (the true focal length here is 500 px, the guess 768)."""
@@ -100,7 +95,7 @@ def test_focal_lengths_are_recovered_from_fundamental_matrices():
     for k in range(30):
         c1, c2 = (1, 1) if k < 10 else (1, 2) if k < 20 else (2, 2)
         R, t = _rotation(rng, 25.0), rng.normal(size=3)
-        pairs.append((c1, c2, _fundamental(K[c1], K[c2], R, t / np.linalg.norm(t))))
+        pairs.append((c1, c2, fundamental_matrix(K[c1], K[c2], R, t / np.linalg.norm(t))))
     found = calibrate_focal_lengths(cameras, pairs)
     assert found[1].focal == pytest.approx(500, rel=0.02) and found[2].focal == pytest.approx(900, rel=0.02)
     assert cameras[1].mean_focal_length() == pytest.approx(found[1].focal)

@@ -137,11 +137,9 @@ view_graph_option = click.option(
 
 chance_option = click.option(
     "--chance-check/--no-chance-check", default=True, show_default=True,
-    help="After verification, drop the verified pairs whose inliers chance alone would give: RANSAC run again on "
-         "each weak pair's matches shuffled (100 random matches in a 640 px photo already reach 16 inliers). "
-         "Learned features keep more matches between photos that share no surface than SIFT; on like columns or "
-         "facades such pairs verify at 15-25 inliers, are wrong, and split or fold the model. stats.json chance "
-         "lists the drops.")
+    help="After verification, drop the verified pairs whose inliers RANSAC also reaches on their matches shuffled "
+         "(chance: learned features keep more matches between unrelated photos than SIFT, and such pairs split or "
+         "fold models). stats.json chance lists the drops.")
 
 
 def mapping_options(*, verification: bool = True) -> Decorator:

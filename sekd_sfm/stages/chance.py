@@ -1,15 +1,9 @@
 """The chance check, right after geometric verification: verified pairs whose inliers chance alone would give.
 
-COLMAP verifies a pair when some epipolar geometry (a fundamental matrix: 7 degrees of freedom)
-has at least 15 inlier matches within 4 px. How many inliers *random* matches reach depends on
-how many matches there are and where their keypoints lie: RANSAC picks the best of thousands of
-hypotheses, and a fundamental matrix whose epipoles fall inside the photo passes close to many
-points. 100 uniformly random matches in a 640 px photo already give 16 inliers; keypoints
-crowded on one object give more. A learned descriptor keeps more putative matches between photos
-that share no surface than SIFT's ratio test does (tens against a handful), so on a turntable of
-like columns pair after pair of photos far apart passes verification at 15-25 inliers, and
-those pairs are wrong: the mapper restarts, splits the ring or folds it (docs/experiments.md,
-section 32).
+COLMAP verifies a pair when some fundamental matrix has 15 inlier matches within 4 px; RANSAC
+keeps the best of thousands of hypotheses, so random matches reach that (100 in a 640 px photo
+give 16), more when the keypoints crowd on one object. SEKD keeps tens of matches between photos
+that share no surface, and such pairs verify at 15-25 inliers, wrongly (docs/reconstruction.md).
 
 The test is empirical (an a-contrario test by permutation): for each verified pair with fewer
 than ``max_inliers`` inliers, the same RANSAC (fundamental matrix, COLMAP's threshold and trial

@@ -16,14 +16,9 @@ at most ``max_fps`` per second are looked at, each reduced to ``analysis_size`` 
 * **a fixed count** (``count`` N): the video cut into N equal spans of time, the sharpest frame
   of each (spans whose frames are all blurred give none).
 
-Keyframes are written as ``<video>/<frame>.jpg`` below the image folder: ``<video>`` the video's
-path without its extension, relative to the input folder (``walk.mp4`` -> ``walk/``), ``<frame>``
-the frame's 0-based index in the video, six digits (``walk/000123.jpg``). Each JPEG's EXIF names
-its video (Make ``sekd keyframe``, Model the video), so COLMAP gives every video one camera of
-its own. ``keyframes.json`` records, per video, its frame rate, size, the frames read, each
-keyframe's frame, time (s) and sharpness, the frames skipped as blurred, and where a damaged
-video stopped. A video already done with the same file and settings is not decoded again;
-a killed run decodes the video it was in again and writes the same keyframes.
+Keyframes are written as ``<video>/<frame:06d>.jpg`` below the image folder, each JPEG's EXIF
+naming its video (one COLMAP camera per video), with ``keyframes.json``; names, record, resuming
+and errors: docs/captures.md.
 """
 from __future__ import annotations
 

@@ -1,18 +1,12 @@
 """The model check, after mapping: verified pairs that the model's own poses contradict.
 
-A model can register every photo at a tenth of a pixel and still be folded: on repeated or
-symmetric structure the mapper can join two look-alike places through wrong pairs, turning part
-of the cameras round. The mapper is consistent with the pairs it built the model from, so its
-reprojection error says nothing. What it cannot be consistent with are the right pairs across
-the fold: true neighbours whose matches the folded poses do not explain. So for every verified
-pair of two photos of one model, with at least ``min_inliers`` inliers: the epipolar geometry of
-the two cameras as the model has them (poses, intrinsics, distortion), and the share of the
-pair's inliers within ``max_error_px`` of it (Sampson distance). A pair below ``min_agreement`` contradicts the model.
-On a correct model nearly every verified pair agrees (the few that do not are wrong pairs that
-the mapper rightly left out: 2 of 51 on fountain-P11, with 32-33 inliers); on a folded one, right
-pairs with hundreds of inliers do not (docs/experiments.md, section 32). A model is flagged
-(``suspect``) when at least ``min_strong`` contradicting pairs are strong ones: at least as many
-inliers as the lower quartile of the tested pairs (a wrong pair the mapper left out is weak).
+A folded model (look-alikes joined, part of the cameras turned round) is consistent with the
+pairs it was built from, not with the right pairs across the fold. So every verified pair of two
+photos of one model with ``min_inliers`` or more inliers is checked against the model's cameras
+(poses, intrinsics, distortion): a pair with under ``min_agreement`` of its inliers within
+``max_error_px`` (Sampson) contradicts it. The model is ``suspect`` when ``min_strong`` or more
+contradicting pairs have at least the tested pairs' lower-quartile inlier count (the wrong pairs
+a correct model leaves out are weak). Measured: docs/experiments.md, section 32.
 """
 from __future__ import annotations
 
