@@ -116,7 +116,9 @@ def plot_summary(rows: dict[str, dict], output: Path, highlight: tuple[str, ...]
     axes[0].invert_yaxis()
     fig.tight_layout()
     path = Path(output) / "summary.png"
-    fig.savefig(path, dpi=110)
+    from .report import save_png
+
+    save_png(fig, path, dpi=110)
     plt.close(fig)
     return path
 

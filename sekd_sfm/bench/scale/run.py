@@ -628,6 +628,8 @@ def plot_scale(report: dict, path: Path) -> Path:
     axes[0].legend(fontsize=7, ncol=2)
     fig.suptitle("Stage cost against collection size (solid: ours, dashed: pycolmap SIFT)")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    from ..report import save_png
+
+    save_png(fig, path, dpi=120)
     plt.close(fig)
     return path
