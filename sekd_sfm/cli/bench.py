@@ -250,3 +250,7 @@ bench.add_command(bench_maps.maps)
 from . import bench_pairs
 
 bench.add_command(bench_pairs.pairs)
+
+from . import bench_captures
+
+bench.add_command(bench_captures.captures)

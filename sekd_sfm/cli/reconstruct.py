@@ -48,7 +48,8 @@ RECONSTRUCT_RESIZE_HELP = (
 camera_options = option_group(
     "camera",
     click.option("--camera-model", default="SIMPLE_RADIAL", show_default=True,
-                 help="COLMAP camera model (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, ...)."),
+                 help="COLMAP camera model (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, ...). "
+                      "2:1 photos are 360-degree panoramas whatever it says; EQUIRECTANGULAR: every photo is one."),
     click.option("--camera-mode", type=click.Choice(list(CAMERA_MODES)), default="auto", show_default=True,
                  help="Cameras shared by: auto (same size and EXIF), single (all images), per-folder, per-image."),
     click.option("--camera-params", default=None,
@@ -215,6 +216,11 @@ def run_options(execution: OptionValues, num_threads: int | None) -> RunOptions:
                    "100 m), align (the model moved to a local east-north-up frame in metres about the photos' mean "
                    "position, a robust similarity; OUTPUT/georef.json gives the origin and residuals), auto (both "
                    "when at least 3 photos carry GPS), off. docs/georef.md.")
+@click.option("--rig-config", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
+              help="Cameras fixed together (COLMAP's rig_configurator JSON: each camera's image_prefix, one "
+                   "ref_sensor, optional cam_from_rig_rotation [w,x,y,z] / cam_from_rig_translation): the photos "
+                   "with one file name under each prefix are one instant; given poses are kept, others estimated. "
+                   "docs/captures.md.")
 @click.option("--extend", is_flag=True,
               help="OUTPUT holds a model: add the photos of IMAGES it lacks (extracted, paired, matched and "
                    "registered with the settings the model was built with) without moving its cameras or changing "
@@ -225,13 +231,15 @@ def run_options(execution: OptionValues, num_threads: int | None) -> RunOptions:
 @execution_options
 def reconstruct(images: Path, output: Path, conf: str | None, extraction: OptionValues, video: OptionValues,
                 num_threads: int | None, pairing: OptionValues, matching: OptionValues, camera: OptionValues, mapping: OptionValues,
-                adapt: bool, features_file: Path | None, matches_file: Path | None, gps: str, extend: bool,
-                extend_refine: bool, execution: OptionValues) -> None:
+                adapt: bool, features_file: Path | None, matches_file: Path | None, gps: str, rig_config: Path | None,
+                extend: bool, extend_refine: bool, execution: OptionValues) -> None:
     """Reconstruct cameras and 3D points from the images below IMAGES (COLMAP SfM through pycolmap).
 
     IMAGES is a folder of photos, a video, or a folder of videos and photos: each video's
     keyframes (--keyframes) become photos in OUTPUT/images, one camera per video, paired in
-    sequence and by retrieval (the loops a walk closes).
+    sequence and by retrieval (the loops a walk closes). 360-degree panoramas (2:1 photos)
+    are mapped as rigs of perspective views (OUTPUT/views; poses in OUTPUT/panoramas.txt);
+    --rig-config maps photos of cameras fixed together as one rig.
 
     \b
     Runs extract, pairs and match when their outputs are missing in OUTPUT (reusing them
@@ -261,6 +269,7 @@ def reconstruct(images: Path, output: Path, conf: str | None, extraction: Option
       sekd reconstruct photos/ -o out/ --extend                   # add photos copied into photos/ since the run
       sekd reconstruct walk.mp4 -o out/                           # a video: its keyframes mapped
       sekd reconstruct clips/ -o out/ --keyframes 80              # 80 keyframes from each video in clips/
+      sekd reconstruct rig/ -o out/ --rig-config rig.json         # rig/cam0/0001.jpg, rig/cam1/0001.jpg, ...
     """
     from sekd_sfm.pipelines.reconstruct import ReconstructionError
     from sekd_sfm.pipelines.reconstruct import reconstruct as run
@@ -270,6 +279,7 @@ def reconstruct(images: Path, output: Path, conf: str | None, extraction: Option
     # What --extend checks, of the configuration the options made (before --gps and --adapt's weights)
     extension = _extend_options(config, given, pairing, extend_refine) if extend else None
     config.gps.mode = gps
+    config.rig = str(rig_config.resolve()) if rig_config else None
     config.keyframes.count, config.keyframes.max_fps = video["keyframes"], video["max_fps"]
     options = run_options(execution, num_threads)
     if adapt:  # new weights

@@ -73,6 +73,8 @@ class ReconstructConfig:
     #: EXIF GPS (``--gps``, georef.py): ``mode`` auto = GPS neighbour pairs + the model aligned to GPS in a
     #: local ENU frame in metres, when at least 3 photos carry GPS.
     gps: GpsConfig = field(default_factory=GpsConfig)
+    #: Camera rigs (``--rig-config``, COLMAP's rig_configurator file; ``stages.rig``), or None.
+    rig: str | None = None
 
 
 def config_dict(config: Any) -> dict:

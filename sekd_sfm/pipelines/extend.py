@@ -211,6 +211,9 @@ def _finished_record(out: Path) -> record.Record:
     if earlier.inputs.get("features") or earlier.inputs.get("matches"):
         raise SekdError(f"{out}: was built from given files (--features/--matches), which --extend cannot add "
                         "photos to; rebuild it from the photos")
+    if earlier.config_data.get("rig") or (out / record.VIEWS).is_dir():
+        raise SekdError(f"{out}: was built from a camera rig or 360-degree panoramas, which --extend cannot add to; "
+                        "run sekd reconstruct on all the photos into a new folder")
     return earlier
 
 

@@ -28,13 +28,14 @@ from ..stages.colmap import clean_logs, colmap_log, log_prefix, require_pycolmap
 from ..stages.database import (
     check_principal_point_mode,
     create_database,
+    images_per_camera,
     parse_camera_params,
     two_view_options,
     verify_matches,
 )
 from ..stages.extract import changed_masks, extract_features
 from ..stages.georef import GpsPlan, georeference, photo_names, plan_gps, write_georef
-from ..stages.keyframes import prepare_captures
+from ..stages.keyframes import link_photos, prepare_captures
 from ..stages.mapping import (
     clean_scratch,
     mapper_options,
@@ -49,8 +50,24 @@ from ..stages.mapping import (
 from ..stages.match import match_features
 from ..stages.modelcheck import check_model
 from ..stages.pairs import make_pairs, read_pairs, write_pairs
+from ..stages.panoramas import (
+    find_panoramas,
+    panorama_rig,
+    render_views,
+    same_panorama,
+    write_panorama_poses,
+)
 from ..stages.principal_point import PrincipalPointPlan, plan_principal_point
 from ..stages.refine import refine_keypoints, refine_summary
+from ..stages.rig import (
+    apply_rigs,
+    check_photos,
+    estimate_cam_from_rig,
+    poses_known,
+    read_rigs,
+    rig_record,
+    write_rigs,
+)
 from ..stages.viewgraph import check_view_graph
 from . import record
 from .config import DEFAULT_MAPPER, DEFAULT_RESIZE_MAX, ReconstructConfig, config_dict
@@ -103,6 +120,10 @@ class Reconstruction:
     rematch: bool = False
     #: The input as given when it holds videos (a video, or a folder of videos and photos), else None.
     captures: Path | None = None
+    #: The camera rigs (``stages.rig``: ``--rig-config``, and the panoramas' views), else None.
+    rigs: list | None = None
+    #: The input's 360-degree panoramas (``stages.panoramas``), mapped as rigs of views.
+    panoramas: list[str] = field(default_factory=list)
 
 
 def reconstruct(image_dir: str | Path, output_dir: str | Path, config: ReconstructConfig | None = None, *,
@@ -218,6 +239,29 @@ def check_options(run: Run, s: Reconstruction) -> Reconstruction:
     parse_camera_params(config.camera.model, config.camera.params)
     check_principal_point_mode(config.camera.principal_point)
     s.gps = plan_gps(s.image_dir, photo_names(s.image_dir, s.features), config.gps)
+    s.rigs = read_rigs(config.rig) if config.rig else None
+    if s.features is None:
+        s.panoramas = find_panoramas(s.image_dir, list_images(s.image_dir), config.camera.model == "EQUIRECTANGULAR")
+    if s.panoramas and (config.rig or config.masks):
+        raise SekdError(f"{s.image_dir}: holds 360-degree panoramas, mapped as rigs of views: leave out "
+                        f"{'--rig-config' if config.rig else '--masks'}")
+    return s
+
+
+def panoramas(run: Run, s: Reconstruction) -> Reconstruction:
+    """Each panorama's perspective views and masks written to OUT/views (``stages.panoramas``), the input's other
+    photos linked there: OUT/views is the run's photo folder, the views one rig of known poses and intrinsics."""
+    views, masks = run.out / record.VIEWS, run.out / record.VIEW_MASKS
+    made = render_views(s.image_dir, s.panoramas, views, masks, run.progress)
+    link_photos(s.image_dir, views, exclude=set(s.panoramas))
+    s.image_dir, s.rigs = views, [panorama_rig(made["width"])]
+    camera = replace(s.config.camera, principal_point="fixed",  # the views' intrinsics are exact
+                     model="PINHOLE" if s.config.camera.model == "EQUIRECTANGULAR" else s.config.camera.model)
+    s.config = replace(s.config, masks=str(masks), camera=camera)
+    s.stats["images_dir"] = str(views)  # the view masks stay out of the record: exports would take them for masks
+    s.stats["panoramas"] = {"panoramas": len(made["panoramas"]), **made["views"]}
+    logger.info("%d photos are 360-degree panoramas: each mapped as %d views", len(made["panoramas"]),
+                len(made["views"]["yaws_deg"]))
     return s
 
 
@@ -247,6 +291,8 @@ def pairs(run: Run, s: Reconstruction) -> Reconstruction:
     if s.matches is None:
         s.pairs = make_pairs(s.features, path, s.config.pairs, progress=run.progress,
                              gps=s.gps.neighbors(s.config.gps))
+        if s.panoramas:  # views of one panorama share no pixel
+            s.pairs = write_pairs([p for p in read_pairs(s.pairs) if not same_panorama(*p)], path)
     else:
         listed = read_pairs(s.config.pairs.file) if s.config.pairs.file else _stored_pairs(s.matches)
         s.pairs = write_pairs(listed, path)  # the record of what was imported
@@ -279,7 +325,32 @@ def database(run: Run, s: Reconstruction) -> Reconstruction:
     s.log = run.hold(colmap_log(run.out / record.COLMAP_LOG))
     s.database = run.out / record.DATABASE
     s.keypoints = s.keypoints or s.features
-    create_database(s.image_dir, s.keypoints, s.matches, s.pair_list, s.database, s.config.camera)
+    prefixes = tuple(camera.prefix for rig in s.rigs or [] for camera in rig)
+    create_database(s.image_dir, s.keypoints, s.matches, s.pair_list, s.database, s.config.camera, prefixes)
+    return s
+
+
+def rig(run: Run, s: Reconstruction) -> Reconstruction:
+    """The rigs checked against the photos and, where every camera's pose in its rig is given, written into the
+    database and kept by the mapper (``stages.rig``); otherwise the step ``rig calibration`` estimates them."""
+    names = list(ff.list_keys(s.keypoints))
+    s.stats["rig"] = {"photos_per_camera": check_photos(s.rigs, names, s.config.rig or record.VIEWS)}
+    if s.config.camera.principal_point == "auto":  # its test's covariances take one photo per instant, not a rig
+        s.config = replace(s.config, camera=replace(s.config.camera, principal_point="fixed"))
+    if poses_known(s.rigs):
+        _keep_rigs(s, apply_rigs(s.database, s.rigs))
+    return s
+
+
+def rig_calibration(run: Run, s: Reconstruction) -> Reconstruction:
+    """The photos mapped once as free photos, each rig camera's pose estimated where most instants agree, and the
+    rigs written into the database for mapping (their poses refined there); OUT/rig.json records them."""
+    free = run_mapper(s.database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log))
+    if not free:
+        raise explain_no_model(s.match_stats, s.options, s.database)
+    s.rigs, s.stats["rig"]["estimated"] = estimate_cam_from_rig(s.rigs, free[0])
+    apply_rigs(s.database, s.rigs)
+    write_rigs(s.rigs, run.out / record.RIG)
     return s
 
 
@@ -336,6 +407,10 @@ def georeferencing(run: Run, s: Reconstruction) -> Reconstruction:
     s.stats["georeference"] = {k: v for k, v in georef.items() if k != "per_image"}
     s.model, s.models = _finish(s.models, s.match_stats, s.options, run.out, s.stats, s.database)
     write_georef(run.out, georef)
+    if s.rigs:
+        s.stats["rig"]["model"] = rig_record(s.models[0])
+    if s.panoramas:
+        s.stats["panoramas"]["posed"] = write_panorama_poses(s.models[0], run.out / record.PANORAMA_POSES)
     return s
 
 
@@ -356,20 +431,36 @@ def model_check(run: Run, s: Reconstruction) -> Reconstruction:
 RECONSTRUCT: tuple[Step, ...] = (
     Step("keyframes", keyframes, when=lambda s: s.captures is not None),
     Step("options", check_options, timed=False),
+    Step("panoramas", panoramas, when=lambda s: bool(s.panoramas)),
     Step("extract", extract),
     Step("pairs", pairs),
     Step("match", match),
     Step("refine", refine, when=lambda s: s.config.refine.enabled),
     Step("database", database),
+    Step("rig", rig, timed=False, when=lambda s: bool(s.rigs)),
     Step("principal point", principal_point, timed=False),
     Step("verification", verification),
     Step("chance check", chance, when=lambda s: s.config.chance.enabled),
     Step("match report", match_report, timed=False),
     Step("view graph", view_graph, when=lambda s: s.config.view_graph.enabled),
+    Step("rig calibration", rig_calibration, when=lambda s: bool(s.rigs) and not poses_known(s.rigs)),
     Step("mapping", mapping),
     Step("georeference", georeferencing, timed=False),
     Step("model check", model_check, when=lambda s: s.config.model_check.enabled),
 )
+
+
+def _keep_rigs(s: Reconstruction, given_cameras: dict[str, int]) -> None:
+    """The mapper keeps the rigs' given poses and the cameras' given intrinsics (a rig file's, the panoramas')."""
+    options = getattr(s.options, "incremental_options", s.options)
+    if hasattr(options, "ba_refine_sensor_from_rig"):
+        options.ba_refine_sensor_from_rig = False
+        options.constant_cameras = set(given_cameras.values())
+    else:  # global: no constant cameras; its adjustment keeps all intrinsics when the rigs give them all
+        options.mapper.refine_sensor_from_rig = False
+        if given_cameras and len(given_cameras) == len(images_per_camera(s.database)):
+            ba = options.mapper.bundle_adjustment
+            ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
 
 
 def _record_principal_point(s: Reconstruction) -> None:

@@ -7,6 +7,8 @@ An output folder of ``sekd reconstruct`` (``--extend`` adds to it in place)::
     database.db, colmap.log              COLMAP's database and log
     model/, models/<k>/                  the largest model, the others largest first
     georef.json                          the local east-north-up frame, when the model was georeferenced
+    images/, views/, view-masks/         videos' keyframes; panoramas' views (and masks), the other photos linked
+    rig.json, panoramas.txt              the rigs with their poses; each panorama's pose
     stats.json                           the record: status, configuration, versions, counts, timings
 
 ``sekd triangulate`` writes the same names for the files it shares. Every other module learns
@@ -33,6 +35,12 @@ COLMAP_LOG = "colmap.log"
 GEOREF = "georef.json"
 #: The photos of a run whose input holds videos: their keyframes (``stages.keyframes``), the input's photos linked.
 IMAGES = "images"
+#: Panoramas' perspective views and their masks (``stages.panoramas``), the input's other photos linked.
+VIEWS, VIEW_MASKS = "views", "view-masks"
+#: The rig file a run used (``stages.rig``): as given, with the poses it estimated filled in.
+RIG = "rig.json"
+#: One line per posed panorama, hloc's format (``stages.panoramas``).
+PANORAMA_POSES = "panoramas.txt"
 MODEL = MAIN_MODEL
 MODELS = "models"
 

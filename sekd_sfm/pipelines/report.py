@@ -209,6 +209,23 @@ def folded_warning(check: dict) -> str:
             "fitting the model; check it against photos or known cameras before use")
 
 
+def _capture_lines(stats: dict) -> list[str]:
+    """The summary's lines on rigs and panoramas: each rig's cameras and instants, each estimated pose's support."""
+    lines = []
+    panoramas = stats.get("panoramas")
+    if panoramas and "posed" in panoramas:
+        lines.append(f"  panoramas          {panoramas['posed']} of {panoramas['panoramas']} posed (each as "
+                     f"{len(panoramas['yaws_deg'])} views), poses in panoramas.txt")
+    rig = stats.get("rig") or {}
+    for entry in [] if panoramas else rig.get("model", []):
+        lines.append(f"  rig                {len(entry['cameras'])} cameras ({', '.join(rig['photos_per_camera'])}), "
+                     f"{entry['instants_registered']} instants registered")
+    for prefix, support in (rig.get("estimated") or {}).items():
+        lines.append(f"  rig pose           {prefix} estimated where {support['agreeing']} of {support['instants']} "
+                     "instants agree (rig.json)")
+    return lines
+
+
 def format_summary(stats: dict) -> str:
     """The one-screen summary of a run's record (``record.STATS``, as a dictionary)."""
     lines = [f"reconstruction: {stats['status']}" + (f" ({stats['failure']})" if stats.get("failure") else "")]
@@ -221,6 +238,7 @@ def format_summary(stats: dict) -> str:
         sizes = ", ".join(str(m["registered_images"]) for m in stats["models"])
         lines.append(f"  models             {len(stats['models'])}" + (f": {sizes} photos (the others in models/)"
                                                                       if len(stats["models"]) > 1 else ""))
+    lines += _capture_lines(stats)
     m = stats.get("matches") or {}
     if m:
         lines.append(f"  matches            {m['pairs_with_matches']} pairs, median {m['median_matches']:.0f} matches, "

@@ -150,11 +150,13 @@ def camera_groups(image_dir: Path, names: list[str]) -> list[list[str]]:
     return list(groups.values())
 
 
-def _import_images(database: Path, image_dir: Path, names: list[str], camera: CameraConfig) -> None:
+def _import_images(database: Path, image_dir: Path, names: list[str], camera: CameraConfig,
+                   rig_prefixes: tuple[str, ...] = ()) -> None:
     """Cameras and images into ``database``. ``auto`` imports each camera group as one shared camera.
 
     COLMAP's own AUTO mode gives every image without an EXIF focal length its own camera
     (11 cameras for fountain-P11's 11 photos of one camera), so the groups are made here.
+    The photos under each of ``rig_prefixes`` (a rig's cameras, ``stages.rig``) share one camera whatever the mode.
     """
     pycolmap = require_pycolmap()
     missing = [n for n in names if not (image_dir / n).is_file()]
@@ -168,14 +170,21 @@ def _import_images(database: Path, image_dir: Path, names: list[str], camera: Ca
     options.camera_model = camera.model
     options.camera_params = camera.params or ""
     open_database(database).close()  # import_images needs an existing database file
+    for prefix in rig_prefixes:
+        group = [n for n in names if n.startswith(prefix)]
+        if group:
+            pycolmap.import_images(str(database), str(image_dir), pycolmap.CameraMode.SINGLE, group, options)
+    rigged = [n for n in names if rig_prefixes and n.startswith(tuple(rig_prefixes))]
+    names = sorted(set(names) - set(rigged))
     if camera.mode == "auto":
         for group in camera_groups(image_dir, names):
             pycolmap.import_images(str(database), str(image_dir), pycolmap.CameraMode.SINGLE, group, options)
-    else:
+    elif names:
         mode = getattr(pycolmap.CameraMode, CAMERA_MODES[camera.mode])
         pycolmap.import_images(str(database), str(image_dir), mode, names, options)
     with open_database(database) as db:
         imported = {image.name for image in db.read_all_images()}
+    names = names + rigged
     if set(names) - imported:
         skipped = sorted(set(names) - imported)
         hint = ("--camera-mode single needs images of one size; use auto or per-image" if camera.mode == "single"
@@ -204,18 +213,19 @@ def _write_keypoints(db, ids: dict[str, int], features: Path) -> None:
 
 
 def create_database(image_dir: str | Path, features: str | Path, matches: str | Path, pairs: list[Pair],
-                    database: str | Path, camera: CameraConfig | None = None) -> Path:
+                    database: str | Path, camera: CameraConfig | None = None, rig_prefixes: tuple[str, ...] = ()) -> Path:
     """A fresh COLMAP database with cameras, images, keypoints and the raw matches of ``pairs``.
 
     Images are the keys of ``features``, read from ``image_dir`` by COLMAP (sizes, EXIF focal
-    length). An existing ``database`` is replaced. Returns ``database``.
+    length); those under each of ``rig_prefixes`` share a camera. An existing ``database`` is replaced.
+    Returns ``database``.
     """
     image_dir, features, matches, database = Path(image_dir), Path(features), Path(matches), Path(database)
     camera = camera or CameraConfig()
     for suffix in ("", "-wal", "-shm"):
         database.with_name(database.name + suffix).unlink(missing_ok=True)
     names = ff.list_keys(features)
-    _import_images(database, image_dir, names, camera)
+    _import_images(database, image_dir, names, camera, rig_prefixes)
     with open_database(database) as db:
         ids = {image.name: image.image_id for image in db.read_all_images()}
         _write_keypoints(db, ids, features)

@@ -275,9 +275,10 @@ def prepare_captures(source: str | Path, image_dir: str | Path, config: Keyframe
     return made
 
 
-def link_photos(source: str | Path, image_dir: str | Path) -> list[str]:
+def link_photos(source: str | Path, image_dir: str | Path, exclude: set[str] = frozenset()) -> list[str]:
     """The photos of ``source`` (a folder that also holds videos) linked into ``image_dir`` under their relative
-    names (a symbolic link, a copy where links cannot be made); returns their names. A video file: none."""
+    names (a symbolic link, a copy where links cannot be made), but those named in ``exclude``; returns their
+    names. A video file: none."""
     import shutil
 
     from ..files.images import IMAGE_EXTENSIONS
@@ -290,6 +291,8 @@ def link_photos(source: str | Path, image_dir: str | Path) -> list[str]:
         if path.suffix.lower() not in IMAGE_EXTENSIONS or not path.is_file():
             continue
         name = path.relative_to(source).as_posix()
+        if name in exclude:
+            continue
         target = image_dir / name
         names.append(name)
         if target.is_symlink() or target.exists():

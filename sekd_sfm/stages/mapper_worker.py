@@ -69,6 +69,7 @@ def adjustment_options(reconstruction, num_threads: int, pycolmap, refine: dict 
         options.refine_focal_length = refine["focal_length"]
         options.refine_principal_point = refine["principal_point"]
         options.refine_extra_params = refine["extra_params"]
+        options.refine_sensor_from_rig = refine.get("sensor_from_rig", True)
     return options
 
 
@@ -81,10 +82,12 @@ def refined_intrinsics(options) -> tuple[dict[str, bool], int]:
     if hasattr(inner, "ba_refine_focal_length"):  # incremental, or the clusters of hierarchical
         return ({"focal_length": bool(inner.ba_refine_focal_length),
                  "principal_point": bool(inner.ba_refine_principal_point),
-                 "extra_params": bool(inner.ba_refine_extra_params)}, int(inner.num_threads))
+                 "extra_params": bool(inner.ba_refine_extra_params),
+                 "sensor_from_rig": bool(inner.ba_refine_sensor_from_rig)}, int(inner.num_threads))
     ba = options.mapper.bundle_adjustment  # global
     return ({"focal_length": bool(ba.refine_focal_length), "principal_point": bool(ba.refine_principal_point),
-             "extra_params": bool(ba.refine_extra_params)}, int(options.num_threads))
+             "extra_params": bool(ba.refine_extra_params),
+             "sensor_from_rig": bool(options.mapper.refine_sensor_from_rig)}, int(options.num_threads))
 
 
 def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap) -> None:
@@ -184,7 +187,7 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
         config.add_image(image_id)
     for frame_id in fixed_frames:
         config.set_constant_rig_from_world_pose(frame_id)
-    for camera_id in fixed_cameras:
+    for camera_id in set(fixed_cameras) & {reconstruction.images[i].camera_id for i in reconstruction.reg_image_ids()}:
         config.set_constant_cam_intrinsics(camera_id)
     if not fixed_frames:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
@@ -214,10 +217,10 @@ def run(request: dict) -> list:
     models = sorted(found.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
     if request.get("final_filter"):
         refine, threads = refined_intrinsics(options)  # the final filter refines what the mapper refined
-        fixed_frames, fixed_cameras = (), ()
+        fixed_frames = ()
+        fixed_cameras = list(getattr(getattr(options, "incremental_options", options), "constant_cameras", ()))
         if request.get("input_path") and getattr(options, "fix_existing_frames", False):  # --extend: earlier ones
             fixed_frames = list(pycolmap.Reconstruction(request["input_path"]).reg_frame_ids())
-            fixed_cameras = list(options.constant_cameras)
         request["records"] = [final_filter(r, refine, threads, pycolmap, fixed_frames, fixed_cameras) for r in models]
     if request.get("log_prefix"):
         pycolmap.logging.set_log_destination(pycolmap.logging.INFO, "")  # flush and close the log
