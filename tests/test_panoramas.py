@@ -1,6 +1,7 @@
 """360-degree photos (``sekd_sfm.stages.panoramas``): views of an equirectangular panorama, masks, poses."""
 from __future__ import annotations
 
+import json
 import math
 
 import cv2
@@ -72,3 +73,30 @@ def test_resumes_and_refuses_what_is_not_a_panorama(tmp_path):
     render_views(tmp_path, ["pano.jpg"], tmp_path / "v", tmp_path / "m", progress=False)
     assert view.stat().st_mtime_ns == stamp  # done views are not rendered again
     assert same_panorama("pano0/a.jpg", "pano2/a.jpg") and not same_panorama("pano0/a.jpg", "pano0/b.jpg")
+
+
+def test_generated_panoramas_are_posed_against_the_truth(shared, tmp_path):
+    from sekd_sfm import reconstruct
+    from sekd_sfm.bench.scale.captures import render_panoramas
+    from sekd_sfm.bench.scale.scene import SceneConfig
+    from sekd_sfm.evaluation.metrics import rotation_angle_deg
+    from sekd_sfm.stages.rig import quat_to_matrix
+
+    scene = json.loads(render_panoramas(tmp_path / "scene", SceneConfig(), count=3, width=1024, progress=False)
+                       .read_text())
+    out = tmp_path / "out"
+    reconstruct(tmp_path / "scene/images", out, progress=False)
+    lines = [line.split() for line in (out / "panoramas.txt").read_text().splitlines() if not line.startswith("#")]
+    poses = {f[0]: (quat_to_matrix([float(v) for v in f[1:5]]), np.array([float(v) for v in f[5:]])) for f in lines}
+    truth = {c["name"]: (np.array(c["R"]), np.array(c["t"])) for c in scene["images"]}
+    assert sorted(poses) == sorted(truth)
+    names = sorted(truth)
+    for a, b in zip(names, names[1:]):  # relative rotation and translation direction of neighbours
+        Rt, Re = truth[b][0] @ truth[a][0].T, poses[b][0] @ poses[a][0].T
+        tt, te = truth[b][1] - Rt @ truth[a][1], poses[b][1] - Re @ poses[a][1]
+        assert rotation_angle_deg(Re @ Rt.T) < 1.0
+        assert np.degrees(np.arccos(np.clip(tt @ te / np.linalg.norm(tt) / np.linalg.norm(te), -1, 1))) < 3.0
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["panoramas"]["posed"] == 3 and (out / "views/pano3").is_dir()
+    assert not any(p.count("pano") == 2 and p.split()[0].split("/", 1)[1] == p.split()[1].split("/", 1)[1]
+                   for p in (out / "pairs.txt").read_text().splitlines())  # no pair within a panorama

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from sekd_sfm import ReconstructConfig, reconstruct
 from sekd_sfm.errors import SekdError
 from sekd_sfm.evaluation.metrics import rotation_angle_deg
 from sekd_sfm.stages.rig import (
@@ -90,3 +91,50 @@ def test_consensus_ignores_instants_the_free_model_got_wrong():
     assert rotation_angle_deg(pose[:3, :3] @ yaw(40).T) < 0.1
     assert np.abs(pose[:3, 3] - truth[:3, 3]).max() < 0.005
     assert np.allclose(quat_to_matrix(matrix_to_quat(pose[:3, :3])), pose[:3, :3])
+
+
+@pytest.fixture(scope="module")
+def rig_scene(shared, tmp_path_factory):
+    """8 instants of the generated two-camera rig (320 px) and a first run with the rig's pose left out."""
+    from sekd_sfm.bench.scale.captures import render_rig
+    from sekd_sfm.bench.scale.scene import SceneConfig
+
+    root = tmp_path_factory.mktemp("rig")
+    scene = json.loads(render_rig(root / "scene", SceneConfig(image_size=320), instants=8, progress=False).read_text())
+    out = root / "estimated"
+    reconstruct(root / "scene/images", out, ReconstructConfig(rig=str(root / "scene/rig.json")), progress=False)
+    return root, scene, out
+
+
+def _rig_pose(model) -> np.ndarray:
+    (rig,) = [r for r in model.rigs.values() if r.num_sensors() == 2]
+    (pose,) = rig.non_ref_sensors.values()
+    return make_pose(pose.rotation.matrix(), pose.translation)
+
+
+def test_rig_pose_left_out_is_estimated_and_kept_rigid(rig_scene):
+    import pycolmap
+
+    root, scene, out = rig_scene
+    model = pycolmap.Reconstruction(str(out / "model"))
+    assert model.num_reg_images() == 16 and len([f for f in model.frames.values() if f.has_pose]) == 8
+    truth = quat_to_matrix(scene["rig"]["cam_from_rig_rotation"])
+    assert rotation_angle_deg(_rig_pose(model)[:3, :3] @ truth.T) < 0.5
+    written = read_rigs(out / "rig.json")  # the rig file with the estimated pose, for later runs
+    assert poses_known(written)
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["rig"]["estimated"]["cam1/"]["agreeing"] >= 6 and stats["rig"]["model"][0]["instants_registered"] == 8
+
+
+def test_rig_pose_given_is_kept(rig_scene, tmp_path):
+    import pycolmap
+
+    root, scene, out = rig_scene
+    given = read_rigs(root / "scene/rig_known.json")
+    config = ReconstructConfig(rig=str(root / "scene/rig_known.json"))
+    reconstruct(root / "scene/images", tmp_path / "known", config, features=out / "features.h5",
+                matches=out / "matches.h5", progress=False)
+    model = pycolmap.Reconstruction(str(tmp_path / "known/model"))
+    assert model.num_reg_images() == 16
+    assert np.allclose(_rig_pose(model), given[0][1].cam_from_rig, atol=1e-6)  # neither rotation nor baseline moved
+    assert not (tmp_path / "known/rig.json").exists()

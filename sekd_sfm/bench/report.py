@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ..evaluation.metrics import THRESHOLDS
 from ..files.atomic import write_atomic
+from .plotting import save_png
 
 
 def _pct(value) -> str:
@@ -74,18 +75,6 @@ def _legend_below(fig, handles: list, labels: list[str], title: str | None = Non
 
 def _save(fig, path: Path) -> Path:
     return save_png(fig, path, dpi=110, bbox_inches="tight")  # "tight" keeps the legend below the axes in the PNG
-
-
-def save_png(fig, path: Path, **savefig) -> Path:
-    """``fig`` as a 256-colour PNG: a plot has a few dozen colours plus their anti-aliased edges, which a palette
-    keeps to within one level, at a third of a full-colour PNG's size (the published results live in the tree)."""
-    from PIL import Image
-
-    fig.savefig(path, **savefig)
-    with Image.open(path) as image:
-        palette = image.convert("RGB").quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
-    palette.save(path, optimize=True)
-    return path
 
 
 def plot_curves(results: dict, output: Path) -> list[Path]:

@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 
 from ..files.atomic import write_atomic
+from .plotting import save_png
 
 COLUMNS = ("avg_ha_all", "avg_ha_i", "avg_ha_v", "avg_ha_runs", "mma3", "pose_maa", "pose_maa_runs", "sfm_registered",
            "sfm_maa", "sfm_auc1", "sfm_rot_deg", "sfm_time_s")
@@ -116,8 +117,6 @@ def plot_summary(rows: dict[str, dict], output: Path, highlight: tuple[str, ...]
     axes[0].invert_yaxis()
     fig.tight_layout()
     path = Path(output) / "summary.png"
-    from .report import save_png
-
     save_png(fig, path, dpi=110)
     plt.close(fig)
     return path

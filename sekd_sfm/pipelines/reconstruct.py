@@ -351,6 +351,7 @@ def rig_calibration(run: Run, s: Reconstruction) -> Reconstruction:
     s.rigs, s.stats["rig"]["estimated"] = estimate_cam_from_rig(s.rigs, free[0])
     apply_rigs(s.database, s.rigs)
     write_rigs(s.rigs, run.out / record.RIG)
+    s.stats["rig"]["free_model_photos"] = free[0].num_reg_images()
     return s
 
 
@@ -395,6 +396,12 @@ def mapping(run: Run, s: Reconstruction) -> Reconstruction:
     filtered: list = []
     s.models = run_mapper(s.database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
                           final_filter=s.config.final_filter, records=filtered)
+    if not s.models and (s.stats.get("rig") or {}).get("estimated"):
+        raise ReconstructionError(
+            f"no model with the rig: the photos mapped as free photos ({s.stats['rig']['free_model_photos']} of them "
+            f"in one model) gave each camera's pose in the rig ({record.RIG}), and with those poses the mapper found "
+            "no initial pair: the free model is likely wrong (too few or too similar photos); measure the poses and "
+            "give them in the rig file (cam_from_rig_rotation, cam_from_rig_translation)")
     s.stats["final_filter"] = filtered[0] if filtered else None
     s.models = s.principal_point.settle(s.models, run.out, s.options, run.progress, log_prefix(s.log))
     _record_principal_point(s)

@@ -224,6 +224,10 @@ def estimate_cam_from_rig(rigs: list[Rig], reconstruction) -> tuple[list[Rig], d
                                 "photo of the same instant, so its pose in the rig cannot be estimated; give "
                                 "cam_from_rig_rotation and cam_from_rig_translation in the rig file")
             pose, agree = _consensus(np.stack(relative))
+            if agree < max(2, len(relative) / 2):
+                raise SekdError(f"rig: the photos mapped as free photos disagree on {camera.prefix!r}'s pose in the rig "
+                                f"(at most {agree} of {len(relative)} instants within {AGREEMENT_DEG} deg of each "
+                                "other); give cam_from_rig_rotation and cam_from_rig_translation in the rig file")
             estimated.append(RigCamera(camera.prefix, False, pose, camera.extra))
             record[camera.prefix] = {"instants": len(relative), "agreeing": agree}
         out.append(estimated)

@@ -40,6 +40,7 @@ from ...errors import SekdError
 from ...evaluation.metrics import pose_auc
 from ...files.atomic import write_atomic
 from ...files.locking import exclusive_lock
+from ..plotting import save_png
 from .measure import Measurement, run_measured
 from .scene import SceneConfig, generate_scene, read_covisibility, read_scene
 
@@ -628,8 +629,6 @@ def plot_scale(report: dict, path: Path) -> Path:
     axes[0].legend(fontsize=7, ncol=2)
     fig.suptitle("Stage cost against collection size (solid: ours, dashed: pycolmap SIFT)")
     fig.tight_layout()
-    from ..report import save_png
-
     save_png(fig, path, dpi=120)
     plt.close(fig)
     return path
