@@ -61,6 +61,8 @@ class CapturesConfig:
     baseline: bool = True
     num_threads: int | None = None
     textures: str | None = None
+    #: Metres between panoramas (None: ``scale.captures.PANORAMA_SPACING_M``).
+    spacing: float | None = None
 
 
 def generate(scene_dir: Path, config: CapturesConfig, progress: bool = True) -> Path:
@@ -71,7 +73,8 @@ def generate(scene_dir: Path, config: CapturesConfig, progress: bool = True) -> 
     count = config.count or DEFAULT_COUNTS[config.kind]
     if config.kind == "panorama":
         return captures.render_panoramas(scene_dir, SceneConfig(seed=config.seed, textures=config.textures), count,
-                                         config.image_size or 2048, progress)
+                                         config.image_size or 2048, progress,
+                                         config.spacing or captures.PANORAMA_SPACING_M)
     scene = SceneConfig(image_size=config.image_size or 640, seed=config.seed, textures=config.textures)
     if config.kind == "rig":
         return captures.render_rig(scene_dir, scene, count, progress=progress)

@@ -17,10 +17,12 @@ from .options import num_threads_option
 @click.option("--image-size", type=click.IntRange(min=64), default=None,
               help="Long side of the video frames and rig photos (px) [default: 640]; panoramas: their width "
                    "[default: 2048].")
+@click.option("--spacing", type=click.FloatRange(min=0.1), default=None,
+              help="Panoramas: metres between them along the walk [default: 2.5].")
 @click.option("--seed", type=int, default=0, show_default=True, help="Scene, cameras, blur and mapper seed.")
 @click.option("--no-baseline", is_flag=True, help="Skip the baseline run (video, rig).")
 @num_threads_option
-def captures(kind, output, count, image_size, seed, no_baseline, num_threads) -> None:
+def captures(kind, output, count, image_size, spacing, seed, no_baseline, num_threads) -> None:
     """`sekd reconstruct` on a generated capture of the city block of `bench scale`, with known cameras.
 
     \b
@@ -34,7 +36,7 @@ def captures(kind, output, count, image_size, seed, no_baseline, num_threads) ->
                 Registered photos, AUC over all pairs, the model rig's error (rotation,
                 translation direction) and per instant the deviation of the two cameras' relative
                 rotation (median, max). Baseline: the same photos without the rig.
-      panorama  equirectangular 2:1 panoramas 5 m apart (true world-to-panorama poses); posed
+      panorama  equirectangular 2:1 panoramas --spacing m apart (true world-to-panorama poses); posed
                 panoramas (OUT/panoramas.txt), AUC over pairs, median rotation error.
     Pairs with an unregistered image count as failures. Results: OUTPUT/KIND/results.json
     (version, commit, machine, command, settings, figures) and results.md. A rerun reuses
@@ -48,7 +50,7 @@ def captures(kind, output, count, image_size, seed, no_baseline, num_threads) ->
     """
     from sekd_sfm.bench.captures import CapturesConfig, run_captures_benchmark
 
-    config = CapturesConfig(kind, count, image_size, seed, not no_baseline, num_threads)
+    config = CapturesConfig(kind, count, image_size, seed, not no_baseline, num_threads, spacing=spacing)
     path = run_captures_benchmark(output, config)
     click.echo((path.parent / "results.md").read_text())
     click.echo(f"results: {path}")

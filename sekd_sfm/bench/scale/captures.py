@@ -36,8 +36,9 @@ from .scene import (
     layout_scene,
 )
 
-#: Walk length (m) between panoramas: at 6-9 m from the facades, neighbours see the same facades 30-40 deg apart.
-PANORAMA_SPACING_M = 5.0
+#: Walk length (m) between panoramas: a panorama every few steps; each facade point is seen by three or more of them
+#: (at 6-9 m from the facades, 5 m leaves neighbours 30-40 deg apart and most points in two panoramas only).
+PANORAMA_SPACING_M = 2.5
 #: Walk length (m) between video frames; the poses are interpolated between the walk's photos.
 VIDEO_STEP_M = 0.25
 #: Motion blur kernel lengths (px), inclusive.
@@ -188,19 +189,19 @@ def render_panorama(draw, R: np.ndarray, t: np.ndarray, width: int) -> np.ndarra
 
 
 def render_panoramas(output_dir: str | Path, config: SceneConfig, count: int = 30, width: int = 2048,
-                     progress: bool = True) -> Path:
-    """``count`` equirectangular panoramas ``width x width/2`` along the walk, ``PANORAMA_SPACING_M`` apart
+                     progress: bool = True, spacing_m: float = PANORAMA_SPACING_M) -> Path:
+    """``count`` equirectangular panoramas ``width x width/2`` along the walk, ``spacing_m`` apart
     (``config.num_images`` / ``spacing`` unused): images/NNNNN.jpg, scene.json (per name world-to-panorama R, t;
     K null). Each is oriented like its walk camera, turned by a random yaw about its own y axis. Returns
     scene.json's path."""
     if width < 16 or width % 2:
         raise SekdError(f"panorama width {width}: give an even number of pixels, at least 16")
     out = Path(output_dir)
-    capture = {"kind": "panorama", "count": count, "width": width, "spacing_m": PANORAMA_SPACING_M}
+    capture = {"kind": "panorama", "count": count, "width": width, "spacing_m": spacing_m}
     if done := _reuse(out, config, capture):
         return done
     start = time.perf_counter()
-    layout = walk_layout(config, count, spacing=PANORAMA_SPACING_M)
+    layout = walk_layout(config, count, spacing=spacing_m)
     draw = face_renderer(layout)
     (out / "images").mkdir(parents=True, exist_ok=True)
     images = []
