@@ -61,6 +61,7 @@ from ..stages.principal_point import PrincipalPointPlan, plan_principal_point
 from ..stages.refine import refine_keypoints, refine_summary
 from ..stages.rig import (
     apply_rigs,
+    calibration_photos,
     check_photos,
     estimate_cam_from_rig,
     poses_known,
@@ -343,16 +344,31 @@ def rig(run: Run, s: Reconstruction) -> Reconstruction:
 
 
 def rig_calibration(run: Run, s: Reconstruction) -> Reconstruction:
-    """The photos mapped once as free photos, each rig camera's pose estimated where most instants agree, and the
-    rigs written into the database for mapping (their poses refined there); OUT/rig.json records them."""
-    free = run_mapper(s.database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log))
-    if not free:
-        raise explain_no_model(s.match_stats, s.options, s.database)
-    s.rigs, s.stats["rig"]["estimated"] = estimate_cam_from_rig(s.rigs, free[0])
+    """The photos of the first ``RIG_CALIBRATION_INSTANTS`` instants (all of them if those do not do) mapped as free
+    photos, each rig camera's pose estimated where most instants agree, and the rigs written into the database for
+    mapping (their poses refined there); OUT/rig.json records them."""
+    names = list(ff.list_keys(s.keypoints))
+    for subset in (calibration_photos(s.rigs, names, RIG_CALIBRATION_INSTANTS), []):
+        options = mapper_options([], s.config.seed, "incremental")
+        options.image_names = subset  # [] = every photo
+        free = run_mapper(s.database, s.image_dir, options, run.progress, log_prefix=log_prefix(s.log))
+        if not free and not subset:
+            raise explain_no_model(s.match_stats, options, s.database)
+        try:
+            s.rigs, s.stats["rig"]["estimated"] = estimate_cam_from_rig(s.rigs, free[0] if free else None)
+            break
+        except SekdError:
+            if not subset or len(subset) == len(names):
+                raise
     apply_rigs(s.database, s.rigs)
     write_rigs(s.rigs, run.out / record.RIG)
     s.stats["rig"]["free_model_photos"] = free[0].num_reg_images()
     return s
+
+
+#: Instants whose photos are mapped freely to estimate the poses in a rig: enough to outvote a few wrong ones, and
+#: a fraction of a long capture's mapping time.
+RIG_CALIBRATION_INSTANTS = 20
 
 
 def principal_point(run: Run, s: Reconstruction) -> Reconstruction:

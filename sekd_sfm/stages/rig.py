@@ -199,15 +199,27 @@ def _world_to_camera(reconstruction) -> dict[str, np.ndarray]:
     return poses
 
 
+def calibration_photos(rigs: list[Rig], names: list[str], instants: int) -> list[str]:
+    """The photos of each rig's first ``instants`` instants (in natural name order), every camera's."""
+    from .pairs import natural_key
+
+    chosen, known = [], set(names)
+    for rig in rigs:
+        ref = next(camera for camera in rig if camera.ref)
+        frames = sorted((n[len(ref.prefix):] for n in names if n.startswith(ref.prefix)), key=natural_key)[:instants]
+        chosen += [name for camera in rig for name in (camera.prefix + f for f in frames) if name in known]
+    return chosen
+
+
 def estimate_cam_from_rig(rigs: list[Rig], reconstruction) -> tuple[list[Rig], dict]:
     """Each unknown camera pose in its rig from a model of the photos mapped freely; (rigs, record by prefix).
 
     For every instant with both photos registered, cam_from_ref = cam_from_world * ref_from_world^-1. The instant
     with the most others within AGREEMENT_DEG of its rotation wins; its agreeing instants are averaged (rotation:
     the projected mean; translation: the median), so instants the free model got wrong do not pull the pose.
-    SekdError when a camera has no instant registered together with the reference camera.
+    SekdError when a camera has no instant registered together with the reference camera (or no model is given).
     """
-    poses = _world_to_camera(reconstruction)
+    poses = _world_to_camera(reconstruction) if reconstruction is not None else {}
     record = {}
     out = []
     for rig in rigs:
