@@ -138,3 +138,23 @@ def test_rig_pose_given_is_kept(rig_scene, tmp_path):
     assert model.num_reg_images() == 16
     assert np.allclose(_rig_pose(model), given[0][1].cam_from_rig, atol=1e-6)  # neither rotation nor baseline moved
     assert not (tmp_path / "known/rig.json").exists()
+
+
+def test_rig_model_exports_as_any_other(rig_scene, tmp_path):
+    import pycolmap
+
+    from sekd_sfm.stages.export import export_model
+    from sekd_sfm.stages.export_nerfstudio import export_nerfstudio
+
+    root, scene, out = rig_scene
+    text = export_model(out / "model", tmp_path / "text")
+    assert (text / "rigs.txt").is_file() and (text / "frames.txt").is_file()
+    export_nerfstudio(out / "model", tmp_path / "splat", root / "scene/images")
+    transforms = json.loads((tmp_path / "splat/transforms.json").read_text())
+    assert sorted(f["file_path"] for f in transforms["frames"]) == sorted(f"images/{n}" for n in scene_names(scene))
+    model = pycolmap.Reconstruction(str(tmp_path / "splat/sparse/0"))
+    assert model.num_reg_images() == 16
+
+
+def scene_names(scene) -> list[str]:
+    return [image["name"] for image in scene["images"]]

@@ -54,7 +54,9 @@ class KeyframeConfig:
     min_motion: float = 0.05
     #: A frame whose sharpness is under this share of the recent median is blurred.
     blur_ratio: float = 0.5
-    blur_window: int = 15
+    #: Frames looked at (half a second at 10 a second) whose median sharpness a frame is compared with: short, so that
+    #: a scene turning from a textured facade to a plain one (sharpness falling 10x in 1.5 s) is not taken for blur.
+    blur_window: int = 5
     #: Long side (px) frames are analysed at (the keyframes are written at full size).
     analysis_size: int = 480
     jpeg_quality: int = 95
