@@ -241,6 +241,8 @@ def check_options(run: Run, s: Reconstruction) -> Reconstruction:
     check_principal_point_mode(config.camera.principal_point)
     s.gps = plan_gps(s.image_dir, photo_names(s.image_dir, s.features), config.gps)
     s.rigs = read_rigs(config.rig) if config.rig else None
+    if s.rigs:  # a prefix that names no photo fails now, not after extraction
+        check_photos(s.rigs, photo_names(s.image_dir, s.features), config.rig)
     if s.features is None:
         s.panoramas = find_panoramas(s.image_dir, list_images(s.image_dir), config.camera.model == "EQUIRECTANGULAR")
     if s.panoramas and (config.rig or config.masks):
