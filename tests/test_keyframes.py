@@ -58,9 +58,9 @@ def test_keyframes_skip_blurred_frames_and_follow_the_motion(pan, tmp_path):
     frames = [k["frame"] for k in entry["keyframes"]]
     assert not set(frames) & blurred and entry["blurred_skipped"] >= 4
     assert entry["frames_read"] == 120 and entry["frames_looked_at"] == 40  # 10 of 30 frames a second
-    assert 10 <= len(frames) <= 30 and frames[0] == 0 and frames == sorted(frames)
+    assert 6 <= len(frames) <= 15 and frames[0] == 0 and frames == sorted(frames)
     gaps = np.diff(frames)
-    assert gaps.max() <= 12  # 2.7 px per frame: 5% of 320 px is 6 frames, 12 with a blurred one skipped
+    assert gaps.max() <= 18  # 2.7 px per frame: 10% of 320 px is 12 frames, 15-18 with a blurred one skipped
     first = entry["keyframes"][1]
     assert first["name"] == f"pan/{first['frame']:06d}.jpg" and first["time_s"] == pytest.approx(first["frame"] / FPS)
     names = sorted(p.relative_to(tmp_path / "images").as_posix() for p in (tmp_path / "images").rglob("*.jpg"))
