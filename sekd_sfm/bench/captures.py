@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from ..errors import SekdError
-from ..evaluation.metrics import pose_auc, rotation_angle_deg
+from ..evaluation.metrics import pose_auc, rotation_angle_deg, translation_error_deg
 from ..files.atomic import write_atomic
 from ..stages.rig import quat_to_matrix
 from .scale.run import pair_rotation_translation_errors, registered_poses
@@ -139,11 +139,6 @@ def keyframe_names(image_dir: Path) -> list[str]:
     return [k["name"] for video in json.loads(path.read_text())["videos"].values() for k in video["keyframes"]]
 
 
-def _direction_error(a: np.ndarray, b: np.ndarray) -> float | None:
-    norms = np.linalg.norm(a) * np.linalg.norm(b)
-    return float(np.degrees(np.arccos(np.clip(a @ b / norms, -1, 1)))) if norms > 0 else None
-
-
 def model_rig(rec) -> tuple[np.ndarray, np.ndarray] | None:
     """Camera 1 from camera 0 ``(R, t)`` of the model's rig holding the cameras of ``cam0/`` and ``cam1/``, else None."""
     import pycolmap
@@ -178,7 +173,7 @@ def rig_scores(rec, scene: dict) -> dict:
                  if n.startswith("cam0/") and "cam1" + n[4:] in poses]
     rig = model_rig(rec) if rec is not None else None
     return {"rig_rotation_error_deg": round(rotation_angle_deg(rig[0] @ R_true.T), 3) if rig else None,
-            "rig_translation_error_deg": round(_direction_error(rig[1], t_true), 3) if rig else None,
+            "rig_translation_error_deg": round(translation_error_deg(rig[1], t_true), 3) if rig else None,
             "instants_registered": len(deviation),
             "instant_rotation_median_deg": round(float(np.median(deviation)), 3) if deviation else None,
             "instant_rotation_max_deg": round(max(deviation), 3) if deviation else None}

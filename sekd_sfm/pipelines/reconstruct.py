@@ -239,12 +239,13 @@ def check_options(run: Run, s: Reconstruction) -> Reconstruction:
     s.two_view = two_view_options(config.verification, config.seed)
     parse_camera_params(config.camera.model, config.camera.params)
     check_principal_point_mode(config.camera.principal_point)
-    s.gps = plan_gps(s.image_dir, photo_names(s.image_dir, s.features), config.gps)
+    names = photo_names(s.image_dir, s.features)
+    s.gps = plan_gps(s.image_dir, names, config.gps)
     s.rigs = read_rigs(config.rig) if config.rig else None
     if s.rigs:  # a prefix that names no photo fails now, not after extraction
-        check_photos(s.rigs, photo_names(s.image_dir, s.features), config.rig)
+        check_photos(s.rigs, names, config.rig)
     if s.features is None:
-        s.panoramas = find_panoramas(s.image_dir, list_images(s.image_dir), config.camera.model == "EQUIRECTANGULAR")
+        s.panoramas = find_panoramas(s.image_dir, names, config.camera.model == "EQUIRECTANGULAR")
     if s.panoramas and (config.rig or config.masks):
         raise SekdError(f"{s.image_dir}: holds 360-degree panoramas, mapped as rigs of views: leave out "
                         f"{'--rig-config' if config.rig else '--masks'}")

@@ -170,21 +170,16 @@ def _import_images(database: Path, image_dir: Path, names: list[str], camera: Ca
     options.camera_model = camera.model
     options.camera_params = camera.params or ""
     open_database(database).close()  # import_images needs an existing database file
-    for prefix in rig_prefixes:
-        group = [n for n in names if n.startswith(prefix)]
-        if group:
-            pycolmap.import_images(str(database), str(image_dir), pycolmap.CameraMode.SINGLE, group, options)
-    rigged = [n for n in names if rig_prefixes and n.startswith(tuple(rig_prefixes))]
-    names = sorted(set(names) - set(rigged))
-    if camera.mode == "auto":
-        for group in camera_groups(image_dir, names):
-            pycolmap.import_images(str(database), str(image_dir), pycolmap.CameraMode.SINGLE, group, options)
-    elif names:
+    rigged = [[n for n in names if n.startswith(prefix)] for prefix in rig_prefixes]
+    free = [n for n in names if not n.startswith(tuple(rig_prefixes))]
+    single = [group for group in rigged if group] + (camera_groups(image_dir, free) if camera.mode == "auto" else [])
+    for group in single:
+        pycolmap.import_images(str(database), str(image_dir), pycolmap.CameraMode.SINGLE, group, options)
+    if camera.mode != "auto" and free:
         mode = getattr(pycolmap.CameraMode, CAMERA_MODES[camera.mode])
-        pycolmap.import_images(str(database), str(image_dir), mode, names, options)
+        pycolmap.import_images(str(database), str(image_dir), mode, free, options)
     with open_database(database) as db:
         imported = {image.name for image in db.read_all_images()}
-    names = names + rigged
     if set(names) - imported:
         skipped = sorted(set(names) - imported)
         hint = ("--camera-mode single needs images of one size; use auto or per-image" if camera.mode == "single"

@@ -23,7 +23,8 @@ import numpy as np
 
 from ..errors import SekdError
 from ..files.atomic import write_atomic
-from .rig import RigCamera, make_pose, matrix_to_quat
+from ..files.poses import pose_line
+from .rig import RigCamera, make_pose
 
 logger = logging.getLogger("sekd")
 
@@ -170,8 +171,6 @@ def write_panorama_poses(reconstruction, path: Path) -> int:
     for image in sorted(reconstruction.images.values(), key=lambda i: i.name):
         if not image.name.startswith(reference) or not image.has_pose:
             continue
-        pose = image.frame.rig_from_world
-        values = [*matrix_to_quat(pose.rotation.matrix()), *pose.translation]
-        lines.append(" ".join([image.name[len(reference):], *(f"{v:.9g}" for v in values)]))
+        lines.append(pose_line(image.name[len(reference):], image.frame.rig_from_world))
     write_atomic(path, ("\n".join(lines) + "\n").encode())
     return len(lines) - 1

@@ -89,10 +89,9 @@ def _parse_camera(entry, where: str) -> RigCamera:
 
 
 def quat_to_matrix(wxyz: np.ndarray) -> np.ndarray:
+    """3 x 3 rotation of a quaternion [w, x, y, z] (normalised first)."""
     w, x, y, z = np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return np.asarray(require_pycolmap().Rotation3d(np.array([x, y, z, w])).matrix())
 
 
 def matrix_to_quat(R: np.ndarray) -> list[float]:
