@@ -143,11 +143,19 @@ chance_option = click.option(
          "fold models). stats.json chance lists the drops.")
 
 
+capture_order_option = click.option(
+    "--capture-order/--no-capture-order", default=True, show_default=True,
+    help="When the model comes out folded (the model check) or split, and the photos' names give an order in which "
+         "nearly every photo is verified with the next (a walk, a turntable, a video's keyframes): map again in that "
+         "order, first the photos at most 3 apart, then the farther pairs that fit those poses; the better model is "
+         "kept. Look-alikes far apart in a capture then cannot fold the model. stats.json sequence lists the drops.")
+
+
 def mapping_options(*, verification: bool = True) -> Decorator:
     """The group ``mapping``: --mapper-type, --mapper, --refine, --verification (if ``verification``) and --seed,
     how matches become a model."""
     declarations = [mapper_type_option, mapper_option, refine_option, chance_option, view_graph_option,
-                    final_filter_option]
+                    capture_order_option, final_filter_option]
     declarations += [verification_option] if verification else []
     return option_group("mapping", *declarations, seed_option)
 
@@ -179,6 +187,7 @@ def reconstruct_config(extraction: OptionValues, matching: OptionValues, camera:
     config.final_filter = mapping.get("final_filter", True)
     config.chance.enabled = mapping.get("chance_check", True)
     config.view_graph.enabled = mapping.get("view_graph", False)
+    config.sequence.enabled = mapping.get("capture_order", True)
     if conf:  # hloc-style names, so the files of several presets coexist in OUTPUT
         config.file_names = output_names(conf, "pairs")
     return config, given

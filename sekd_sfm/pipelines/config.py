@@ -19,6 +19,7 @@ from ..stages.match import MatchConfig
 from ..stages.modelcheck import ModelCheckConfig
 from ..stages.pairs import PairsConfig
 from ..stages.refine import RefineConfig
+from ..stages.sequence import SequenceConfig
 from ..stages.viewgraph import ViewGraphConfig
 
 #: Long side (px) images are reduced to for reconstruction, as hloc does: SEKD's cost grows with
@@ -63,6 +64,9 @@ class ReconstructConfig:
     #: After mapping, the verified pairs each model's poses contradict (``stages.modelcheck``): a folded model
     #: is said to be one. Reports only; the models are left as they are.
     model_check: ModelCheckConfig = field(default_factory=ModelCheckConfig)
+    #: After mapping, a folded or split model of an ordered capture mapped again in capture order
+    #: (``stages.sequence``): generated 100-photo walks with look-alike buildings, pose AUC@5 0.26-0.49 -> 0.95-0.97.
+    sequence: SequenceConfig = field(default_factory=SequenceConfig)
     seed: int = 0
     #: Names of the feature and match files made in the output folder (``--conf`` names them
     #: hloc-style, feats-<conf>.h5 and matches-<conf>_pairs.h5, so several presets' files coexist).

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import shutil
+import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -37,6 +40,7 @@ from ..stages.extract import changed_masks, extract_features
 from ..stages.georef import GpsPlan, georeference, photo_names, plan_gps, write_georef
 from ..stages.keyframes import link_photos, prepare_captures
 from ..stages.mapping import (
+    SCRATCH_PREFIX,
     clean_scratch,
     mapper_options,
     min_model_size,
@@ -69,6 +73,17 @@ from ..stages.rig import (
     rig_record,
     write_rigs,
 )
+from ..stages.sequence import (
+    better,
+    chain_database,
+    disagreeing_pairs,
+    drop_pairs,
+    linked_share,
+    listed_pairs,
+    remap_reason,
+    sequence_record,
+    verified_pairs,
+)
 from ..stages.viewgraph import check_view_graph
 from . import record
 from .config import DEFAULT_MAPPER, DEFAULT_RESIZE_MAX, ReconstructConfig, config_dict
@@ -80,6 +95,7 @@ from .report import (
     explain_no_model,
     folded_warning,
     match_statistics,
+    sequence_line,
     summarize_matches,
     unregistered_report,
 )
@@ -427,6 +443,62 @@ def mapping(run: Run, s: Reconstruction) -> Reconstruction:
     return s
 
 
+def sequence(run: Run, s: Reconstruction) -> Reconstruction:
+    """A folded or split model of an ordered capture mapped again in capture order (``stages.sequence``): the
+    photos near each other in the order first, then the farther pairs that fit that chain. The new model and its
+    database replace the old ones only when the new model is better (not folded, else more photos)."""
+    config = s.config.sequence
+    check = check_model(s.models[0], s.database, s.config.model_check) if s.models else {"suspect": False}
+    photos = sum(1 for image in s.match_stats["images"].values() if image["verified_pairs"])
+    reason = remap_reason(s.models, check["suspect"], photos, config)
+    if reason is None:
+        return s
+    linked = linked_share(verified_pairs(s.database, min_num_matches(s.options)))
+    if linked < config.min_linked:
+        s.stats["sequence"] = sequence_record(reason, linked, config, remapped=False)
+        return s
+    scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
+    try:
+        chain_db, final_db = scratch / "chain.db", scratch / "final.db"
+        far = chain_database(s.database, chain_db, config.window)
+        chain = _map_raw(run, s, chain_db)
+        dropped = disagreeing_pairs(chain, s.database, far, config)
+        shutil.copyfile(s.database, final_db)
+        drop_pairs(final_db, [pair for pair, _ in dropped])
+        final = _map_raw(run, s, final_db) if chain else []
+        scores = {"before": (check["suspect"], _registered(s.models))}
+        for name, models in (("chain", chain), ("remapped", final)):
+            scores[name] = (check_model(models[0], final_db, s.config.model_check)["suspect"], _registered(models)) \
+                if models else (True, 0)
+        kept = max(("remapped", "chain", "before"), key=lambda k: (not scores[k][0], scores[k][1]))
+        kept = kept if better(scores[kept], scores["before"]) else "before"
+        if kept != "before":
+            s.models = s.principal_point.settle(final if kept == "remapped" else chain, run.out, s.options,
+                                                run.progress, log_prefix(s.log))
+            os.replace(final_db, s.database)
+            _record_principal_point(s)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    s.stats["sequence"] = sequence_record(
+        reason, linked, config, remapped=True, far_pairs=len(far), dropped=len(dropped),
+        dropped_pairs=listed_pairs(dropped, config.listed), kept=kept,
+        models={k: {"suspect": v[0], "registered": v[1]} for k, v in scores.items()})
+    logger.info("capture order: %s", sequence_line(s.stats["sequence"]))
+    return s
+
+
+def _map_raw(run: Run, s: Reconstruction, database: Path) -> list:
+    """The models of ``database`` (largest first) by the run's mapper and final filter, the principal point as
+    mapped."""
+    return run_mapper(database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
+                      final_filter=s.config.final_filter)
+
+
+def _registered(models: list) -> int:
+    """Photos registered in the largest of ``models`` (0 without one)."""
+    return models[0].num_reg_images() if models else 0
+
+
 def georeferencing(run: Run, s: Reconstruction) -> Reconstruction:
     """The main model moved into a local east-north-up frame from the photos' GPS, where the plan says so."""
     georef = georeference(s.models, s.gps, s.config.gps, s.config.seed)  # models[0] moved into the ENU frame
@@ -471,6 +543,7 @@ RECONSTRUCT: tuple[Step, ...] = (
     Step("view graph", view_graph, when=lambda s: s.config.view_graph.enabled),
     Step("rig calibration", rig_calibration, when=lambda s: bool(s.rigs) and not poses_known(s.rigs)),
     Step("mapping", mapping),
+    Step("capture order", sequence, when=lambda s: s.config.sequence.enabled and not s.rigs and not s.panoramas),
     Step("georeference", georeferencing, timed=False),
     Step("model check", model_check, when=lambda s: s.config.model_check.enabled),
 )

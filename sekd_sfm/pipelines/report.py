@@ -209,6 +209,22 @@ def folded_warning(check: dict) -> str:
             "fitting the model; check it against photos or known cameras before use")
 
 
+def sequence_line(record: dict) -> str:
+    """One line: what mapping in capture order (``stats.json`` ``sequence``) did and which model was kept."""
+    why = "folded" if record["reason"] == "folded" else "split"
+    if not record.get("remapped"):
+        return (f"the model is {why}; the photos are no ordered capture ({record['linked']:.0%} of consecutive "
+                f"photos verified, {record['config']['min_linked']:.0%} needed), so it stays")
+    models = record["models"]
+    before, after = models["before"], models[record["kept"]] if record["kept"] != "before" else None
+    done = (f"the model was {why} ({before['registered']} photos); mapped again in capture order, "
+            f"{record['dropped']} of {record['far_pairs']} pairs over {record['config']['window']} photos apart "
+            "dropped (their inliers do not fit the order's poses)")
+    if after is None:
+        return done + "; no better model came of it, the first stays"
+    return done + f"; kept: {after['registered']} photos" + (", still folded" if after["suspect"] else ", not folded")
+
+
 def _capture_lines(stats: dict) -> list[str]:
     """The summary's lines on rigs and panoramas: each rig's cameras and instants, each estimated pose's support."""
     lines = []
@@ -257,6 +273,8 @@ def format_summary(stats: dict) -> str:
     elif graph and graph.get("pairs"):
         lines.append(f"  view graph         {graph['dropped']} of {graph['pairs']} verified pairs dropped: their rotation "
                      f"disagrees with the others' by more than {graph['threshold_deg']:.1f} deg")
+    if stats.get("sequence"):
+        lines.append(f"  capture order      {sequence_line(stats['sequence'])}")
     for check in stats.get("model_check") or []:
         if check.get("suspect"):
             lines.append(f"  model check        {folded_warning(check)}")

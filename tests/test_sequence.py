@@ -1,0 +1,145 @@
+"""Mapping in capture order (``sekd_sfm.stages.sequence``): a model folded on look-alikes, unfolded."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_reconstruct import CALIBRATED, SIFT, W, look_at, project_view, write_scene
+
+from sekd_sfm.bench.strecha import rotation_angle_deg
+from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
+from sekd_sfm.stages.colmap import require_pycolmap
+from sekd_sfm.stages.sequence import (
+    SequenceConfig,
+    VerifiedPair,
+    better,
+    capture_order,
+    chain_database,
+    disagreeing_pairs,
+    far_pairs,
+    linked_share,
+    remap_reason,
+    verified_pairs,
+)
+
+pycolmap = require_pycolmap()
+
+#: Photos round the ring (15 deg apart, give or take 3 deg).
+RING = 24
+
+
+def twin_ring(rng) -> dict:
+    """A ring of RING photos round a column that is the same on opposite sides: 400 points on its front half and
+    their copies turned 180 deg about its axis (same descriptors), each seen from within 60 deg of its normal.
+    Photo k and photo k + 12 see the same; photos at most 3 apart never see a point and its copy."""
+    angles = rng.uniform(0, np.pi, 400)
+    heights = rng.uniform(-1.2, 1.2, 400)
+    half = np.c_[2.5 * np.sin(angles), heights, -2.5 * np.cos(angles)]
+    points = np.concatenate([half, half * [-1, 1, -1]])
+    normals = points * [1, 0, 1] / 2.5
+    descriptors = np.tile(rng.uniform(0, 255, (400, 128)), (2, 1))
+    views = {}
+    for k in range(RING):
+        a = np.radians(15 * k + rng.uniform(-3, 3))
+        centre = np.array([5 * np.sin(a), rng.uniform(-0.5, 0.5), -5 * np.cos(a)])
+        rays = (centre - points) / np.linalg.norm(centre - points, axis=1, keepdims=True)
+        seen = np.einsum("ij,ij->i", normals, rays) > 0.5
+        views[f"photo{k + 1}.png"] = project_view(rng, *look_at(centre), points[seen], descriptors[seen])
+    return views
+
+
+@pytest.fixture(scope="module")
+def twins(tmp_path_factory):
+    """The twin ring reconstructed without and with the capture order: (views, (out, model) each)."""
+    root = tmp_path_factory.mktemp("twins")
+    views = twin_ring(np.random.default_rng(3))
+    runs = {}
+    for name, enabled in (("plain", False), ("ordered", True)):
+        images, out = write_scene(root / name, views, SIFT)
+        config = ReconstructConfig(features=SIFT, camera=CALIBRATED)
+        config.sequence.enabled = enabled
+        runs[name] = out, reconstruct(images, out, config, progress=False)
+    return views, runs
+
+
+def rotation_errors(views: dict, model) -> list[float]:
+    """Relative rotation errors (deg) of every pair of photos registered in ``model``."""
+    reconstruction = pycolmap.Reconstruction(str(model))
+    poses = {im.name: im.cam_from_world().rotation.matrix() for im in reconstruction.images.values() if im.has_pose}
+    names = sorted(poses)
+    return [rotation_angle_deg((poses[b] @ poses[a].T).T @ (views[b]["R"] @ views[a]["R"].T))
+            for i, a in enumerate(names) for b in names[i + 1:]]
+
+
+def test_look_alikes_fold_the_model_without_the_order(twins):
+    views, runs = twins
+    out, model = runs["plain"]
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["model_check"][0]["suspect"]
+    assert np.median(rotation_errors(views, model)) > 20
+
+
+def test_the_capture_order_unfolds_it(twins):
+    views, runs = twins
+    out, model = runs["ordered"]
+    stats = json.loads((out / "stats.json").read_text())
+    record = stats["sequence"]
+    assert record["reason"] == "folded" and record["remapped"] and record["kept"] in ("remapped", "chain")
+    assert record["dropped"] >= 6 and all(p["apart"] > 3 for p in record["dropped_pairs"])
+    assert record["models"]["before"]["suspect"] and not record["models"][record["kept"]]["suspect"]
+    assert pycolmap.Reconstruction(str(model)).num_reg_images() == RING
+    assert max(rotation_errors(views, model)) < 1.0
+    assert not stats["model_check"][0]["suspect"]
+    assert "capture order" in stats["timings_s"]
+
+
+def test_chain_database_keeps_near_pairs_only(twins, tmp_path):
+    _, runs = twins
+    database = runs["ordered"][0] / "database.db"
+    far = chain_database(database, tmp_path / "chain.db", window=3)
+    kept = verified_pairs(tmp_path / "chain.db", 1)
+    assert far and all(p.gap > 3 for p in far) and kept and all(p.gap <= 3 for p in kept)
+    assert linked_share(verified_pairs(database, 15)) == 1.0
+
+
+def test_far_pairs_that_fit_the_model_are_kept(twins):
+    """The unfolded model explains its own far pairs: none of them disagrees."""
+    _, runs = twins
+    out, model = runs["ordered"]
+    pairs = far_pairs(verified_pairs(out / "database.db", 15), 3)
+    assert pairs and disagreeing_pairs([pycolmap.Reconstruction(str(model))], out / "database.db", pairs,
+                                       SequenceConfig()) == []
+
+
+def test_capture_order_compares_numbers_as_numbers():
+    assert capture_order(["img10.jpg", "img2.jpg", "a/img1.jpg", "img1.jpg"]) == \
+        ["a/img1.jpg", "img1.jpg", "img2.jpg", "img10.jpg"]
+
+
+def test_linked_share_counts_consecutive_pairs():
+    pairs = [VerifiedPair(1, 2, "a", "b", 50, 1), VerifiedPair(2, 3, "b", "c", 50, 1), VerifiedPair(1, 4, "a", "d", 50, 3)]
+    assert linked_share(pairs) == pytest.approx(2 / 3)
+    assert far_pairs(pairs, 2) == pairs[2:]
+
+
+class _Model:
+    def __init__(self, n: int):
+        self.n = n
+
+    def num_reg_images(self) -> int:
+        return self.n
+
+
+def test_when_a_model_is_mapped_again():
+    config = SequenceConfig()
+    assert remap_reason([_Model(10)], True, 10, config) == "folded"
+    assert remap_reason([_Model(10), _Model(5)], False, 15, config) == "split"
+    assert remap_reason([_Model(90)], False, 100, config) == "split"
+    assert remap_reason([_Model(96)], False, 100, config) is None
+    assert better((False, 80), (True, 97)) and better((False, 98), (False, 97))
+    assert not better((True, 97), (True, 97)) and not better((True, 99), (False, 10))
+
+
+def test_width_is_the_ring_photos():
+    assert W == 640  # the ring's photos are test_reconstruct's (intrinsics CALIBRATED)
