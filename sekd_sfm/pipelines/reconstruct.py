@@ -459,23 +459,20 @@ def sequence(run: Run, s: Reconstruction) -> Reconstruction:
         return s
     scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
     try:
-        chain_db, final_db = scratch / "chain.db", scratch / "final.db"
-        far = chain_database(s.database, chain_db, config.window)
-        chain = _map_raw(run, s, chain_db)
-        dropped = disagreeing_pairs(chain, s.database, far, config)
-        shutil.copyfile(s.database, final_db)
-        drop_pairs(final_db, [pair for pair, _ in dropped])
-        final = _map_raw(run, s, final_db) if chain else []
+        far, dropped, candidates = _map_in_order(run, s, scratch)
         scores = {"before": (check["suspect"], _registered(s.models))}
-        for name, models in (("chain", chain), ("remapped", final)):
-            scores[name] = (check_model(models[0], final_db, s.config.model_check)["suspect"], _registered(models)) \
-                if models else (True, 0)
+        # Each candidate checked against the pairs it was mapped from, at the far pairs' tolerance (the chain
+        # drifts a little over long loops; a fold is off by far more).
+        tolerant = replace(s.config.model_check, max_error_px=config.max_error_px)
+        for name, (models, db) in candidates.items():
+            scores[name] = (check_model(models[0], db, tolerant)["suspect"], _registered(models)) if models \
+                else (True, 0)
         kept = max(("remapped", "chain", "before"), key=lambda k: (not scores[k][0], scores[k][1]))
         kept = kept if better(scores[kept], scores["before"]) else "before"
         if kept != "before":
-            s.models = s.principal_point.settle(final if kept == "remapped" else chain, run.out, s.options,
-                                                run.progress, log_prefix(s.log))
-            os.replace(final_db, s.database)
+            models, db = candidates[kept]
+            s.models = s.principal_point.settle(models, run.out, s.options, run.progress, log_prefix(s.log))
+            os.replace(db, s.database)  # the pairs the kept model was mapped from
             _record_principal_point(s)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
@@ -485,6 +482,20 @@ def sequence(run: Run, s: Reconstruction) -> Reconstruction:
         models={k: {"suspect": v[0], "registered": v[1]} for k, v in scores.items()})
     logger.info("capture order: %s", sequence_line(s.stats["sequence"]))
     return s
+
+
+def _map_in_order(run: Run, s: Reconstruction, scratch: Path) -> tuple[list, list, dict]:
+    """The two passes of ``stages.sequence`` on copies of the database in ``scratch``: the far pairs, those dropped
+    (with their agreement) and the candidates ``{"chain": (models, database), "remapped": (models, database)}``."""
+    config = s.config.sequence
+    chain_db, final_db = scratch / "chain.db", scratch / "final.db"
+    far = chain_database(s.database, chain_db, config.window)
+    chain = _map_raw(run, s, chain_db)
+    dropped = disagreeing_pairs(chain, s.database, far, config)
+    shutil.copyfile(s.database, final_db)
+    drop_pairs(final_db, [pair for pair, _ in dropped])
+    final = _map_raw(run, s, final_db) if chain else []
+    return far, dropped, {"chain": (chain, chain_db), "remapped": (final, final_db)}
 
 
 def _map_raw(run: Run, s: Reconstruction, database: Path) -> list:
