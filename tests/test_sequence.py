@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 import pytest
-from test_reconstruct import CALIBRATED, SIFT, W, look_at, project_view, write_scene
+from test_reconstruct import CALIBRATED, SIFT, look_at, project_view, write_scene
 
 from sekd_sfm.bench.strecha import rotation_angle_deg
 from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
@@ -141,5 +141,19 @@ def test_when_a_model_is_mapped_again():
     assert not better((True, 97), (True, 97)) and not better((True, 99), (False, 10))
 
 
-def test_width_is_the_ring_photos():
-    assert W == 640  # the ring's photos are test_reconstruct's (intrinsics CALIBRATED)
+
+def test_the_summary_line_says_what_was_done():
+    from sekd_sfm.pipelines.report import sequence_line
+    from sekd_sfm.stages.sequence import sequence_record
+
+    config = SequenceConfig()
+    unordered = sequence_record("split", 0.4, config, remapped=False)
+    assert "no ordered capture (40% of consecutive photos verified, 80% needed)" in sequence_line(unordered)
+    models = {"before": {"suspect": True, "registered": 97}, "chain": {"suspect": False, "registered": 97},
+              "remapped": {"suspect": False, "registered": 97}}
+    done = sequence_record("folded", 1.0, config, remapped=True, far_pairs=552, dropped=336, dropped_pairs=[],
+                           kept="remapped", models=models)
+    assert sequence_line(done) == ("the model was folded (97 photos); mapped again in capture order, 336 of 552 pairs "
+                                   "over 3 photos apart dropped (their inliers do not fit the order's poses); kept: "
+                                   "97 photos, not folded")
+    assert sequence_line({**done, "kept": "before"}).endswith("no better model came of it, the first stays")
