@@ -457,10 +457,17 @@ def sequence(run: Run, s: Reconstruction) -> Reconstruction:
     if linked < config.min_linked:
         s.stats["sequence"] = sequence_record(reason, linked, config, remapped=False)
         return s
+    with run.timed("capture order"):
+        return _remap_in_order(run, s, reason, linked, check["suspect"])
+
+
+def _remap_in_order(run: Run, s: Reconstruction, reason: str, linked: float, suspect: bool) -> Reconstruction:
+    """``sequence``'s two passes, the better model kept and the record written."""
+    config = s.config.sequence
     scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
     try:
         far, dropped, candidates = _map_in_order(run, s, scratch)
-        scores = {"before": (check["suspect"], _registered(s.models))}
+        scores = {"before": (suspect, _registered(s.models))}
         # Each candidate checked against the pairs it was mapped from, at the far pairs' tolerance (the chain
         # drifts a little over long loops; a fold is off by far more).
         tolerant = replace(s.config.model_check, max_error_px=config.max_error_px)
@@ -554,7 +561,8 @@ RECONSTRUCT: tuple[Step, ...] = (
     Step("view graph", view_graph, when=lambda s: s.config.view_graph.enabled),
     Step("rig calibration", rig_calibration, when=lambda s: bool(s.rigs) and not poses_known(s.rigs)),
     Step("mapping", mapping),
-    Step("capture order", sequence, when=lambda s: s.config.sequence.enabled and not s.rigs and not s.panoramas),
+    Step("capture order", sequence, timed=False,  # timed by itself, only when it maps again
+         when=lambda s: s.config.sequence.enabled and not s.rigs and not s.panoramas),
     Step("georeference", georeferencing, timed=False),
     Step("model check", model_check, when=lambda s: s.config.model_check.enabled),
 )
