@@ -66,6 +66,16 @@ def pair_agreement(reconstruction, image1: int, image2: int, x1: np.ndarray, x2:
     return float(np.mean(distances <= max_error_px ** 2))
 
 
+def matched_points(db, keypoints: dict[int, np.ndarray], image1: int, image2: int,
+                   matches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pixel positions (N x 2 each) of ``matches`` (keypoint indices, N x 2) between two images of the open
+    database ``db``; ``keypoints`` caches each image's keypoints across calls."""
+    for image_id in (image1, image2):
+        if image_id not in keypoints:
+            keypoints[image_id] = np.asarray(db.read_keypoints(image_id), np.float64)[:, :2]
+    return keypoints[image1][matches[:, 0]], keypoints[image2][matches[:, 1]]
+
+
 def check_model(reconstruction, database: str | Path, config: ModelCheckConfig | None = None) -> dict:
     """The verified pairs of ``database`` between images of ``reconstruction`` that its poses contradict (module
     doc). Returns the record: pairs tested and their inliers, contradicting pairs and their inliers, the share,
@@ -87,11 +97,8 @@ def check_model(reconstruction, database: str | Path, config: ModelCheckConfig |
             model1, model2 = by_name.get(db_names[id1]), by_name.get(db_names[id2])
             if model1 is None or model2 is None:
                 continue
-            for image_id in (id1, id2):
-                if image_id not in keypoints:
-                    keypoints[image_id] = np.asarray(db.read_keypoints(image_id), np.float64)[:, :2]
-            agreement = pair_agreement(reconstruction, model1, model2, keypoints[id1][matches[:, 0]],
-                                       keypoints[id2][matches[:, 1]], config.max_error_px)
+            agreement = pair_agreement(reconstruction, model1, model2,
+                                       *matched_points(db, keypoints, id1, id2, matches), config.max_error_px)
             counts.append(len(matches))
             if agreement < config.min_agreement:
                 listed.append({"pair": [db_names[id1], db_names[id2]], "inliers": len(matches),

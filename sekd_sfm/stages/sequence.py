@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .colmap import open_database, require_pycolmap
-from .modelcheck import pair_agreement
+from .modelcheck import matched_points, pair_agreement
 
 
 @dataclass
@@ -129,11 +129,8 @@ def disagreeing_pairs(models: list, database: str | Path, pairs: list[VerifiedPa
             if holder is None:
                 continue
             matches = np.asarray(db.read_two_view_geometry(pair.image1, pair.image2).inlier_matches).reshape(-1, 2)
-            for image_id in (pair.image1, pair.image2):
-                if image_id not in keypoints:
-                    keypoints[image_id] = np.asarray(db.read_keypoints(image_id), np.float64)[:, :2]
             share = pair_agreement(models[holder], posed[holder][pair.name1], posed[holder][pair.name2],
-                                   keypoints[pair.image1][matches[:, 0]], keypoints[pair.image2][matches[:, 1]],
+                                   *matched_points(db, keypoints, pair.image1, pair.image2, matches),
                                    config.max_error_px)
             if share < config.min_agreement:
                 found.append((pair, share))
