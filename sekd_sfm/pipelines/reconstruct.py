@@ -80,6 +80,8 @@ from ..stages.sequence import (
     drop_pairs,
     linked_share,
     listed_pairs,
+    rank,
+    registered,
     remap_reason,
     sequence_record,
     verified_pairs,
@@ -467,14 +469,14 @@ def _remap_in_order(run: Run, s: Reconstruction, reason: str, linked: float, sus
     scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
     try:
         far, dropped, candidates = _map_in_order(run, s, scratch)
-        scores = {"before": (suspect, _registered(s.models))}
+        scores = {"before": (suspect, registered(s.models))}
         # Each candidate checked against the pairs it was mapped from, at the far pairs' tolerance (the chain
         # drifts a little over long loops; a fold is off by far more).
         tolerant = replace(s.config.model_check, max_error_px=config.max_error_px)
         for name, (models, db) in candidates.items():
-            scores[name] = (check_model(models[0], db, tolerant)["suspect"], _registered(models)) if models \
+            scores[name] = (check_model(models[0], db, tolerant)["suspect"], registered(models)) if models \
                 else (True, 0)
-        kept = max(("remapped", "chain", "before"), key=lambda k: (not scores[k][0], scores[k][1]))
+        kept = max(("remapped", "chain", "before"), key=lambda k: rank(scores[k]))
         kept = kept if better(scores[kept], scores["before"]) else "before"
         if kept != "before":
             models, db = candidates[kept]
@@ -510,11 +512,6 @@ def _map_raw(run: Run, s: Reconstruction, database: Path) -> list:
     mapped."""
     return run_mapper(database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
                       final_filter=s.config.final_filter)
-
-
-def _registered(models: list) -> int:
-    """Photos registered in the largest of ``models`` (0 without one)."""
-    return models[0].num_reg_images() if models else 0
 
 
 def georeferencing(run: Run, s: Reconstruction) -> Reconstruction:

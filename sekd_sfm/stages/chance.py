@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .colmap import open_database, require_pycolmap
+from .colmap import delete_verified_pairs, open_database, require_pycolmap
 
 logger = logging.getLogger("sekd")
 
@@ -136,9 +136,7 @@ def check_chance(database: str | Path, min_inliers: int, config: ChanceConfig | 
     config = config or ChanceConfig()
     dropped, record = find_chance_pairs(database, min_inliers, config, seed, num_threads)
     if dropped:
-        with open_database(database) as db:
-            for pair in dropped:
-                db.delete_inlier_matches(pair.image1, pair.image2)
+        delete_verified_pairs(database, [(pair.image1, pair.image2) for pair in dropped])
         logger.info("chance check: %d of %d verified pairs dropped, their inliers under %.2f x what their matches "
                     "reach shuffled", len(dropped), record["verified"], config.margin)
     return record

@@ -8,6 +8,7 @@ from __future__ import annotations
 import difflib
 import importlib
 import os
+from collections.abc import Iterable
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -49,6 +50,14 @@ def open_database(path: Path):
     if hasattr(pycolmap.Database, "open"):
         return pycolmap.Database.open(str(path))
     return pycolmap.Database(str(path))
+
+
+def delete_verified_pairs(database: str | Path, pairs: Iterable[tuple[int, int]]) -> None:
+    """Delete the verified inliers of the image-id ``pairs`` from ``database`` (their raw matches stay): what the
+    checks between verification and mapping (chance, view graph, capture order) drop."""
+    with open_database(database) as db:
+        for image1, image2 in pairs:
+            db.delete_inlier_matches(image1, image2)
 
 
 def log_prefix(path: Path) -> Path:

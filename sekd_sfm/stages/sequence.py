@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .colmap import open_database, require_pycolmap
+from .colmap import delete_verified_pairs, open_database, require_pycolmap
 from .modelcheck import matched_points, pair_agreement
 
 
@@ -101,9 +101,7 @@ def far_pairs(pairs: list[VerifiedPair], window: int) -> list[VerifiedPair]:
 
 def drop_pairs(database: str | Path, pairs: Iterable[VerifiedPair]) -> None:
     """Delete the verified inliers of ``pairs`` from ``database`` (their raw matches stay)."""
-    with open_database(database) as db:
-        for pair in pairs:
-            db.delete_inlier_matches(pair.image1, pair.image2)
+    delete_verified_pairs(database, [(pair.image1, pair.image2) for pair in pairs])
 
 
 def chain_database(database: str | Path, target: str | Path, window: int) -> list[VerifiedPair]:
@@ -143,16 +141,24 @@ def remap_reason(models: list, suspect: bool, photos: int, config: SequenceConfi
     ``config.max_left_out`` of the ``photos`` with a verified pair)."""
     if suspect:
         return "folded"
-    registered = models[0].num_reg_images() if models else 0
-    if len(models) > 1 or registered < (1 - config.max_left_out) * photos:
+    if len(models) > 1 or registered(models) < (1 - config.max_left_out) * photos:
         return "split"
     return None
 
 
+def registered(models: list) -> int:
+    """Photos registered in the largest of ``models`` (largest first; 0 without one)."""
+    return models[0].num_reg_images() if models else 0
+
+
+def rank(score: tuple[bool, int]) -> tuple[bool, int]:
+    """Sort key of a model's ``score`` = (suspect, photos registered): not folded first, then more photos."""
+    return not score[0], score[1]
+
+
 def better(new: tuple[bool, int], old: tuple[bool, int]) -> bool:
-    """Whether a model with ``new`` = (suspect, photos registered) beats one with ``old``: not folded first, then
-    more photos."""
-    return (not new[0], new[1]) > (not old[0], old[1])
+    """Whether a model scoring ``new`` beats one scoring ``old`` (``rank``)."""
+    return rank(new) > rank(old)
 
 
 def sequence_record(reason: str, linked: float, config: SequenceConfig, **figures) -> dict:

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..evaluation.metrics import rotation_angles_deg
-from .colmap import open_database, require_pycolmap
+from .colmap import delete_verified_pairs, open_database, require_pycolmap
 
 logger = logging.getLogger("sekd")
 
@@ -298,9 +298,7 @@ def check_view_graph(database: str | Path, min_inliers: int, config: ViewGraphCo
                 "config": asdict(config)}
     dropped, record = find_inconsistent(edges, config)
     if dropped:
-        with open_database(database) as db:
-            for edge, _ in dropped:
-                db.delete_inlier_matches(edge.image1, edge.image2)
+        delete_verified_pairs(database, [(edge.image1, edge.image2) for edge, _ in dropped])
         logger.info("view graph: %d of %d verified pairs dropped, their rotation %.1f deg or more from the "
                     "others' (repeated or symmetric structure)", len(dropped), len(edges), record["threshold_deg"])
     record["dropped_pairs"] = [{"pair": [e.name1, e.name2], "inliers": e.inliers, "disagreement_deg": round(r, 2)}
