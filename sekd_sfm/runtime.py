@@ -14,10 +14,12 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
-
-import torch
+from typing import TYPE_CHECKING
 
 from .errors import SekdError
+
+if TYPE_CHECKING:  # torch is imported where it is used: workers that never touch it start without it
+    import torch
 
 PRECISIONS = ("auto", "fp32", "bf16", "int8")  # int8: optional extra, sekd_sfm/int8.py
 DEVICES = ("auto", "cpu", "cuda")
@@ -114,6 +116,8 @@ def usable_cores() -> int:
 
 def set_num_threads(num_threads: int | None) -> int:
     """Use ``num_threads`` intra-op threads (None or 0: one per available core); SekdError if negative."""
+    import torch
+
     if num_threads is not None and int(num_threads) < 0:
         raise SekdError(f"--num-threads must be a positive number of CPU threads, got {num_threads}")
     if not num_threads:
@@ -124,6 +128,8 @@ def set_num_threads(num_threads: int | None) -> int:
 
 def resolve_device(device: str = "auto") -> torch.device:
     """``auto`` picks CUDA when a GPU is present, else the CPU."""
+    import torch
+
     if device not in DEVICES:
         raise SekdError(f"--device must be one of {', '.join(DEVICES)}, got {device!r}")
     if device == "auto":
@@ -164,6 +170,8 @@ def cpu_model() -> str:
 
 def cpu_description() -> dict:
     """The machine type a speed figure belongs to: model name, ``CPU_FEATURES`` present, torch's kernel level."""
+    import torch
+
     flags = cpu_flags()
     return {"model": cpu_model(), "features": {name: name in flags for name in CPU_FEATURES},
             "torch_kernels": torch.backends.cpu.get_cpu_capability(), "cores": os.cpu_count()}
@@ -202,6 +210,8 @@ def run_record() -> dict:
 
 def timing_context() -> dict:
     """What a benchmark's wall-clock columns (ms per image) depend on: the CPU and torch's intra-op threads."""
+    import torch
+
     return {"cpu": cpu_description(), "threads": torch.get_num_threads()}
 
 
@@ -219,6 +229,8 @@ def cpu_has_fast_bf16() -> bool:
     back to reference kernels ~70x slower than fp32 (measured: 543 against 14.6 ms per 3x3
     convolution at ONEDNN_MAX_CPU_ISA=AVX2 on an AMX CPU).
     """
+    import torch
+
     if not cpu_reports_bf16():
         return False
     try:
@@ -305,6 +317,7 @@ def package_versions() -> dict[str, str]:
     import cv2
     import h5py
     import numpy
+    import torch
 
     from . import __version__
 

@@ -8,12 +8,14 @@ without activating the venv), and the tests that need one skip when it is not th
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import pickle
 import re
 import shutil
 import signal
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -473,11 +475,31 @@ def test_reconstruct_on_ray(cluster, tmp_path):
     assert re.search(r"Ray: 5 imgs in ", run.stderr), run.stderr[-2000:]
     assert re.search(r"Ray: 10 pairs in ", run.stderr), run.stderr[-2000:]
     assert run.stderr.count("Ray: connected to the cluster") == 1  # one connection for both stages
+    assert re.search(r"Ray: 10 pairs in ", run.stderr.split("refine keypoints")[-1]), run.stderr[-2000:]
     stats = json.loads((out / "stats.json").read_text())
     assert stats["status"] == "ok" and stats["model"]["registered_images"] == 5
+    places = {row["stage"]: row["ran_on"] for row in stats["stages"]}
+    assert all(places[stage].startswith("Ray: ") for stage in ("extract", "match", "refine", "verification"))
+    assert places["mapping"] == "driver"
     local = extract_features(images, tmp_path / "local.h5", FeatureConfig(resize_max=640), progress=False,
                              num_threads=1)
     assert _contents(out / "features.h5") == _contents(local)
+    # The same run here gives the same refined keypoints and verified pairs (features and matches reused).
+    here = tmp_path / "here"
+    here.mkdir()
+    for name in ("features.h5", "matches.h5"):
+        shutil.copy(out / name, here / name)
+    result = CliRunner().invoke(sekd, ["reconstruct", str(images), "-o", str(here), "--resize-max", "640",
+                                       "--no-progress"])
+    assert result.exit_code == 0, result.output[-2000:]
+    assert _contents(out / "features-refined.h5") == _contents(here / "features-refined.h5")
+    assert _verified(out / "database.db") == _verified(here / "database.db")
+
+
+def _verified(database: Path) -> list:
+    """Every pair's two-view geometry row of a COLMAP database (inliers, config, matrices), by pair id."""
+    with contextlib.closing(sqlite3.connect(database)) as db:
+        return db.execute("SELECT pair_id, rows, data, config, F, E, H FROM two_view_geometries ORDER BY pair_id").fetchall()
 
 
 def test_missing_ray_is_one_error_line(tmp_path, monkeypatch):

@@ -199,14 +199,10 @@ def test_bench_localization_on_two_real_photos(shared, tmp_path):
     assert "| sekd |" in (tmp_path / "results.md").read_text()
 
 
-def test_a_failed_refinement_resumes_from_the_pairs_it_finished(warped_pair, tmp_path, monkeypatch):
-    """The per-pair alignments run as an execution Stage: finished pairs survive a failure, the rerun computes only
-    the rest, and the keypoints equal those of an uninterrupted run."""
+def _three_photos(images, tmp_path):
+    """The warped pair plus a copy of its second photo (three pairs): image folder, features, matches, pairs."""
     import shutil
 
-    from sekd_sfm.stages import refine as refine_module
-
-    root, images, _, _, _ = warped_pair
     three = tmp_path / "images"
     shutil.copytree(images, three)
     shutil.copy(three / "b.png", three / "c.png")
@@ -215,6 +211,16 @@ def test_a_failed_refinement_resumes_from_the_pairs_it_finished(warped_pair, tmp
     (tmp_path / "pairs.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs))
     matches = match_features(features, tmp_path / "pairs.txt", tmp_path / "matches.h5", MatchConfig(mode="mnn"),
                              progress=False, num_threads=1)
+    return three, features, matches, pairs
+
+
+def test_a_failed_refinement_resumes_from_the_pairs_it_finished(warped_pair, tmp_path, monkeypatch):
+    """The per-pair alignments run as an execution Stage: finished pairs survive a failure, the rerun computes only
+    the rest, and the keypoints equal those of an uninterrupted run."""
+    from sekd_sfm.stages import refine as refine_module
+
+    root, images, _, _, _ = warped_pair
+    three, features, matches, pairs = _three_photos(images, tmp_path)
     clean = refine_keypoints(features, matches, pairs, three, tmp_path / "clean.h5", progress=False)
     computed: list[int] = []
     original = refine_module._pair_edges
@@ -237,3 +243,21 @@ def test_a_failed_refinement_resumes_from_the_pairs_it_finished(warped_pair, tmp
         for name in ("a.png", "b.png", "c.png"):
             assert np.array_equal(f[name]["keypoints"][()], g[name]["keypoints"][()])
     assert refine_summary(clean)["aligned"] == refine_summary(resumed)["aligned"] > 0
+
+
+def test_refinement_over_worker_processes_writes_the_same_keypoints(warped_pair, tmp_path, monkeypatch):
+    """A local run spreads the pairs over processes (one task per pair here): the same file as one process."""
+    from sekd_sfm.execution import LocalExecutor
+    from sekd_sfm.stages import refine as refine_module
+
+    _, images, _, _, _ = warped_pair
+    three, features, matches, pairs = _three_photos(images, tmp_path)
+    monkeypatch.setattr(refine_module, "PAIRS_PER_TASK", 1)
+    one, two = LocalExecutor(1), LocalExecutor(2)
+    here = refine_keypoints(features, matches, pairs, three, tmp_path / "here.h5", progress=False, executor=one)
+    spread = refine_keypoints(features, matches, pairs, three, tmp_path / "spread.h5", progress=False, executor=two)
+    assert one.places == ["local"] and two.places == ["local: 2 processes"]
+    with h5py.File(here, "r") as f, h5py.File(spread, "r") as g:
+        for name in ("a.png", "b.png", "c.png"):
+            assert np.array_equal(f[name]["keypoints"][()], g[name]["keypoints"][()])
+    assert refine_summary(here)["aligned"] == refine_summary(spread)["aligned"] > 0

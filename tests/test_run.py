@@ -33,11 +33,31 @@ def test_steps_run_in_order_timed_as_declared_and_skipped_when_told(tmp_path):
     assert not (tmp_path / "out").exists()  # no lock asked for: the run makes no folder
 
 
+def test_the_stage_table_says_where_each_step_computed(tmp_path):
+    """A step that runs a stage on the executor is listed with the executor's place, the others as the driver's;
+    the summary prints the table."""
+    from sekd_sfm.pipelines.report import stage_lines
+
+    def spread(run, state):
+        run.executor.places.append("local: 2 processes")  # what LocalExecutor.run records for a spread stage
+        return state
+
+    steps = (Step("refine", spread), Step("mapping", lambda run, state: state))
+    with Run(tmp_path, RunOptions(num_threads=2)) as run:
+        run_steps(run, steps, None)
+    table = run.stage_table()
+    assert [(row["stage"], row["ran_on"]) for row in table] == [("refine", "local: 2 processes"), ("mapping", "driver")]
+    lines = stage_lines({"stages": table, "timings_s": run.timings()})
+    assert lines[0].split() == ["stages", "seconds", "ran", "on"] and lines[1].split()[0] == "refine"
+    assert lines[1].endswith("local: 2 processes") and lines[2].endswith("driver") and lines[-1].split()[0] == "total"
+    assert stage_lines({"timings_s": {"extract": 1.0, "total": 1.0}}) == ["  time               extract 1.0s, total 1.0s"]
+
+
 def test_one_executor_for_the_whole_run_closed_at_its_end(tmp_path, monkeypatch):
     opened: list[str] = []
 
     class Counting:
-        name, virtual_merge = "local", False
+        name, virtual_merge, places = "local", False, []
 
         def __enter__(self):
             opened.append("enter")
@@ -46,7 +66,7 @@ def test_one_executor_for_the_whole_run_closed_at_its_end(tmp_path, monkeypatch)
         def __exit__(self, *exc):
             opened.append("exit")
 
-    monkeypatch.setattr(run_module, "open_executor", lambda name, options: Counting())
+    monkeypatch.setattr(run_module, "open_executor", lambda name, options, processes: Counting())
     executors = []
     steps = [Step(f"s{i}", lambda run, state: executors.append(run.executor) or state) for i in range(3)]
     with Run(tmp_path) as run:

@@ -21,6 +21,7 @@ from contextlib import contextmanager
 from typing import Protocol
 
 from ..files import partstore
+from ..runtime import usable_cores
 from .local import run_local
 from .ray_connect import (
     EXECUTORS,
@@ -43,10 +44,12 @@ class Executor(Protocol):
     """Runs stages; a context manager (a Ray executor holds its connection for every stage run inside it).
 
     ``name``: ``local`` or ``ray``. ``virtual_merge``: whether results reach the output as shard files it
-    references (``--ray-merge virtual``), which cannot replace an item in place."""
+    references (``--ray-merge virtual``), which cannot replace an item in place. ``places``: where each stage it
+    ran computed, in order (``local``, ``local: 2 processes``, ``Ray: 4 workers``), for the runs' stage tables."""
 
     name: str
     virtual_merge: bool
+    places: list[str]
 
     def __enter__(self) -> Executor: ...
 
@@ -57,10 +60,15 @@ class Executor(Protocol):
 
 
 class LocalExecutor:
-    """Runs a stage in this process."""
+    """Runs a stage on this machine: in this process, or over ``processes`` worker processes for a stage that asks
+    for them (``Stage.local_processes``)."""
 
     name = "local"
     virtual_merge = False
+
+    def __init__(self, processes: int | None = None):
+        self.processes = processes or usable_cores()
+        self.places: list[str] = []
 
     def __enter__(self) -> LocalExecutor:
         return self
@@ -72,7 +80,9 @@ class LocalExecutor:
             attrs: Attrs | None = None) -> int:
         """Compute the stage into ``parts``, then merge them into ``stage.output`` with ``attrs()``; returns the
         items merged."""
-        run_local(stage, parts, on_error, progress=progress)
+        used = run_local(stage, parts, on_error, progress=progress, processes=self.processes)
+        if stage.keys:
+            self.places.append(f"local: {used} processes" if used > 1 else "local")
         return _finish(stage, parts, attrs)
 
 
@@ -85,6 +95,7 @@ class RayExecutor:
     def __init__(self, options: RayOptions | None = None):
         self.options = options or RayOptions()
         self.ray, self.owned = None, False
+        self.places: list[str] = []
 
     @property
     def virtual_merge(self) -> bool:
@@ -112,17 +123,21 @@ class RayExecutor:
                 if driver_merges_while_running(self.options):
                     merge = partstore.Merge(stage.output, parts, stage.write_group)  # fed as chunks arrive
                     logger.info("Ray: the driver copies the workers' results into the output as they arrive")
-                run_on_ray(self.ray, stage, parts, on_error, options=self.options, progress=progress, merge=merge)
+                workers = run_on_ray(self.ray, stage, parts, on_error, options=self.options, progress=progress,
+                                     merge=merge)
+                self.places.append(f"Ray: {workers} workers")
             return _finish(stage, parts, attrs, merge)
         finally:
             if merge is not None:
                 merge.discard()  # after a failure: the file as it was, the chunks for the next run
 
 
-def open_executor(name: str, options: RayOptions | None = None) -> LocalExecutor | RayExecutor:
-    """The executor called ``name`` (``local`` or ``ray``); checks the name and, for Ray, that a cluster answers."""
+def open_executor(name: str, options: RayOptions | None = None,
+                  processes: int | None = None) -> LocalExecutor | RayExecutor:
+    """The executor called ``name`` (``local`` or ``ray``); checks the name and, for Ray, that a cluster answers.
+    ``processes``: a local executor's worker processes at most (None: one per usable core)."""
     check_executor(name, options)
-    return RayExecutor(options) if name == "ray" else LocalExecutor()
+    return RayExecutor(options) if name == "ray" else LocalExecutor(processes)
 
 
 @contextmanager

@@ -1,29 +1,45 @@
-"""Run a stage in this process: its worker over the batches, results into the part store, one progress bar."""
+"""Run a stage on this machine: its worker over the batches, results into the part store, one progress bar.
+
+A stage whose worker is single-threaded Python and NumPy (``Stage.local_processes``: keypoint refinement)
+is spread over worker processes, one per core; the others (extraction and matching, whose torch already
+uses every core) run in this process.
+"""
 from __future__ import annotations
+
+import multiprocessing
+import signal
+from collections.abc import Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 
 from tqdm import tqdm
 
 from ..errors import Interrupted
 from ..files import partstore
-from .stage import OnError, Stage, calls
+from .stage import OnError, Result, Stage, Worker, calls
+
+#: Tasks queued per process beyond the one it runs: enough to keep it busy, few enough that Ctrl-C or a failure
+#: waits for little.
+QUEUED_PER_PROCESS = 2
 
 
-def run_local(stage: Stage, parts: partstore.PartStore, on_error: OnError, *, progress: bool = True) -> None:
+def run_local(stage: Stage, parts: partstore.PartStore, on_error: OnError, *, progress: bool = True,
+              processes: int = 1) -> int:
     """Compute ``stage.batches`` with the stage's worker here; each finished item goes to ``parts``.
 
-    Ctrl-C writes what is finished into the output and raises ``Interrupted`` (the same command
-    resumes); any other failure leaves the finished items in ``parts`` for the next run.
+    ``processes``: worker processes for a stage that asks for them (``Stage.local_processes``); 1 computes in
+    this process. Returns the processes used. Ctrl-C writes what is finished into the output and raises
+    ``Interrupted`` (the same command resumes); any other failure leaves the finished items in ``parts`` for
+    the next run.
     """
+    used = processes_for(stage, processes)
     bar = tqdm(total=len(stage.keys), unit=stage.unit, desc=stage.name, disable=not progress, dynamic_ncols=True)
     try:
-        worker = stage.build()
-        for keys in calls(stage.joinable, stage.batches):
-            for key, arrays, error in worker(keys):
-                if arrays is None:
-                    on_error(key, error)
-                else:
-                    parts.save(key, arrays)
-                bar.update(1)
+        for key, arrays, error in (_in_processes(stage, used) if used > 1 else _here(stage)):
+            if arrays is None:
+                on_error(key, error)
+            else:
+                parts.save(key, arrays)
+            bar.update(1)
     except KeyboardInterrupt:
         bar.close()
         saved = partstore.finish_run(stage.output, parts, write_group=stage.write_group, what=stage.items)
@@ -34,3 +50,66 @@ def run_local(stage: Stage, parts: partstore.PartStore, on_error: OnError, *, pr
         raise
     finally:
         bar.close()
+    return used
+
+
+def processes_for(stage: Stage, processes: int) -> int:
+    """The worker processes a local run of ``stage`` uses: up to ``processes`` for a stage that asks for them and
+    has more than one task's worth of keys, else 1 (this process)."""
+    if not stage.local_processes or processes <= 1:
+        return 1
+    tasks = -(-len(stage.keys) // max(1, stage.per_task))
+    return max(1, min(processes, tasks))
+
+
+def _here(stage: Stage) -> Iterator[Result]:
+    worker = stage.build()
+    for keys in calls(stage.joinable, stage.batches):
+        yield from worker(keys)
+
+
+_WORKER: Worker | None = None
+
+
+def _start_process(worker: type, args: tuple) -> None:
+    """A worker process's start: Ctrl-C is the parent's to handle (it stops the pool), then the worker is built."""
+    global _WORKER
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _WORKER = worker(*args)
+
+
+def _call(keys: list[str]) -> list[Result]:
+    return list(_WORKER(keys))
+
+
+def _in_processes(stage: Stage, processes: int) -> Iterator[Result]:
+    """The stage's results computed by ``processes`` worker processes, ``stage.per_task`` batches per task, as
+    tasks finish.
+
+    Forked where the system can (Linux): a spawned process would run the caller's script again from the top,
+    which a script without ``if __name__ == "__main__":`` cannot take, and would pay ~0.3 s of imports. The
+    workers that ask for processes use NumPy, SciPy, OpenCV and h5py, which work in a forked child, never torch
+    (whose OpenMP threads, started by extraction in the parent, would not exist in it)."""
+    tasks = [[key for batch in stage.batches[i:i + stage.per_task] for key in batch]
+             for i in range(0, len(stage.batches), stage.per_task)]
+    method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+    pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context(method),
+                               initializer=_start_process, initargs=(stage.worker, stage.args))
+    running: set[Future] = set()
+    try:
+        for keys in tasks:
+            running.add(pool.submit(_call, keys))
+            while len(running) >= processes * (1 + QUEUED_PER_PROCESS):
+                yield from _finished(running)
+        while running:
+            yield from _finished(running)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)  # queued tasks dropped; running ones end (seconds)
+
+
+def _finished(running: set[Future]) -> Iterator[Result]:
+    """Wait for at least one task of ``running`` and yield its results (a worker's exception is raised here)."""
+    done, _ = wait(running, return_when=FIRST_COMPLETED)
+    for future in done:
+        running.discard(future)
+        yield from future.result()

@@ -58,14 +58,15 @@ BY_DRIVER = "@driver"
 
 
 def run_on_ray(ray, stage: Stage, parts: partstore.PartStore, on_error: OnError, *, options: RayOptions,
-               progress: bool = True, merge: partstore.Merge | None = None) -> None:
+               progress: bool = True, merge: partstore.Merge | None = None) -> int:
     """Compute ``stage.batches`` on the connected cluster into ``parts`` (or shards); ``on_error`` for failed items.
+    Returns the workers it used.
 
     ``merge``: a merge of the output begun for this run, fed with each task's chunk as it arrives.
     """
     keys = stage.keys
     if not keys:
-        return
+        return 0
     claims = _claims_path(stage.output)
     threads = _torch_threads()  # the helper switches to the workers' count; restored below
     virtual = options.merge == "virtual" and stage.shardable
@@ -92,6 +93,7 @@ def run_on_ray(ray, stage: Stage, parts: partstore.PartStore, on_error: OnError,
     finally:
         claims.unlink(missing_ok=True)
         set_num_threads(threads)
+    return workers
 
 
 def _torch_threads() -> int:

@@ -48,7 +48,8 @@ class Stage:
     already built (the driver's), used instead of building another one here. ``unit``, ``items``, ``verb``: how progress and logs name an item,
     the items and their making (``img``, ``images``, ``extracted``). ``driver_may_help``:
     whether the driver may run ``built`` on some keys while Ray workers start (only for workers
-    that compute exactly what Ray's CPU workers compute).
+    that compute exactly what Ray's CPU workers compute). ``local_processes``: the worker is single-threaded
+    Python and NumPy, so a local run spreads its tasks (``per_task`` batches each) over one process per core.
     """
 
     name: str
@@ -65,6 +66,7 @@ class Stage:
     shardable: bool = False
     built: Worker | None = field(default=None, compare=False, repr=False)
     driver_may_help: bool = False
+    local_processes: bool = False
 
     @property
     def keys(self) -> list[str]:

@@ -356,7 +356,7 @@ def check_model(run: Run, s: Extension) -> Extension:
 def stage_record(run: Run, s: Extension) -> Extension:
     """OUT's record of the extended model, staged: the extension's entry (with the timed steps' seconds) appended,
     the model's counts, matches and unregistered photos updated."""
-    s.entry["timings_s"] = run.timings()
+    s.entry["timings_s"], s.entry["stages"] = run.timings(), run.stage_table()
     stats = s.earlier.data
     stats.setdefault("extensions", []).append(s.entry)
     names = set(registered_names(s.model))

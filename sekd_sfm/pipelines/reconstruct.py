@@ -15,7 +15,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +24,7 @@ from ..execution import RayOptions
 from ..files import features as ff
 from ..files import matches as mf
 from ..files.images import list_images
+from ..files.signature import input_signature
 from ..files.video import is_video, list_videos
 from ..runtime import package_versions
 from ..stages.chance import check_chance
@@ -86,6 +87,7 @@ from ..stages.sequence import (
     sequence_record,
     verified_pairs,
 )
+from ..stages.verification import verify_pairs
 from ..stages.viewgraph import check_view_graph
 from . import record
 from .config import DEFAULT_MAPPER, DEFAULT_RESIZE_MAX, ReconstructConfig, config_dict
@@ -218,7 +220,7 @@ def _recorded(run: Run, state: Reconstruction, steps: Sequence[Step]) -> Path:
         stats["failure_details"] = str(exc)
         raise
     finally:
-        stats["timings_s"] = run.timings()
+        stats["timings_s"], stats["stages"] = run.timings(), run.stage_table()
         if stats["status"] != "running":
             record.write_record(stats, run.out)
 
@@ -402,8 +404,13 @@ def principal_point(run: Run, s: Reconstruction) -> Reconstruction:
 
 
 def verification(run: Run, s: Reconstruction) -> Reconstruction:
-    """Geometric verification of every pair (pycolmap, on the run's threads)."""
-    verify_matches(s.database, s.two_view, run.num_threads or -1)
+    """Geometric verification of every pair: COLMAP's, per pair on the run's executor (``stages.verification``);
+    photos in rigs by pycolmap over the database, which knows the rigs' frames."""
+    if s.rigs:
+        verify_matches(s.database, s.two_view, run.num_threads or -1)
+        return s
+    inputs = input_signature((s.keypoints, s.matches), s.pair_list, asdict(s.config.camera))
+    verify_pairs(s.database, s.two_view, run.executor, signature=inputs, progress=run.progress)
     return s
 
 

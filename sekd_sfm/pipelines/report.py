@@ -242,6 +242,19 @@ def _capture_lines(stats: dict) -> list[str]:
     return lines
 
 
+def stage_lines(stats: dict) -> list[str]:
+    """The summary's table of stages: seconds and where each computed (``Run.stage_table``), then the total; one
+    ``time`` line for a record that has only the seconds (older runs)."""
+    stages, timings = stats.get("stages"), stats.get("timings_s", {})
+    if not stages:
+        return ["  time               " + ", ".join(f"{k} {v:.1f}s" for k, v in timings.items())] if timings else []
+    width = max(15, *(len(stage["stage"]) for stage in stages))
+    lines = [f"  {'stages':<{width + 2}}  {'seconds':>8}  ran on"]
+    lines += [f"    {stage['stage']:<{width}}  {stage['seconds']:8.1f}  {stage['ran_on']}" for stage in stages]
+    lines.append(f"    {'total':<{width}}  {sum(stage['seconds'] for stage in stages):8.1f}")
+    return lines
+
+
 def format_summary(stats: dict) -> str:
     """The one-screen summary of a run's record (``record.STATS``, as a dictionary)."""
     lines = [f"reconstruction: {stats['status']}" + (f" ({stats['failure']})" if stats.get("failure") else "")]
@@ -290,8 +303,7 @@ def format_summary(stats: dict) -> str:
                      f"best {item.get('best_inliers', 0)} inliers"))
     if len(unregistered) > 5:
         lines.append(f"  not registered     ... and {len(unregistered) - 5} more (listed in {STATS})")
-    timings = stats.get("timings_s", {})
-    lines.append("  time               " + ", ".join(f"{k} {v:.1f}s" for k, v in timings.items()))
+    lines += stage_lines(stats)
     if stats.get("output"):
         lines.append(f"  output             {stats['output']}")
     return "\n".join(lines)

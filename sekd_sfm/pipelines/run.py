@@ -36,7 +36,8 @@ class RunOptions:
 
     #: Recompute features and matches instead of reusing the files an earlier run left in the output folder.
     overwrite: bool = False
-    #: CPU threads of extraction, matching and geometric verification (None: every core the process may use).
+    #: CPU threads of extraction, matching and geometric verification, and the worker processes of keypoint
+    #: refinement (None: every core the process may use).
     num_threads: int | None = None
     progress: bool = True
     #: Where stages spread over items run: ``local`` (this machine) or ``ray`` (the cluster of ``ray_options``).
@@ -52,6 +53,7 @@ class Run:
         self.out = Path(out)
         self.options = options or RunOptions()
         self.seconds: dict[str, float] = {}  # wall time of each timed step, in order
+        self.places: dict[str, str] = {}    # where each timed step computed (``stage_table``)
         self._lock = lock
         self._stack = ExitStack()
         self._executor: Executor | None = None
@@ -59,7 +61,8 @@ class Run:
     def __enter__(self) -> Run:
         try:
             # The executor first: a wrong executor setting (no cluster answers) fails before the folder is made.
-            self._executor = self._stack.enter_context(open_executor(self.options.executor, self.options.ray_options))
+            self._executor = self._stack.enter_context(
+                open_executor(self.options.executor, self.options.ray_options, processes=self.options.num_threads))
             if self._lock is not None:
                 self.out.mkdir(parents=True, exist_ok=True)
                 self._stack.enter_context(exclusive_lock(self.out, what=self._lock))
@@ -93,16 +96,25 @@ class Run:
 
     @contextmanager
     def timed(self, name: str) -> Iterator[None]:
-        """Record the block's wall time as step ``name`` (s, 3 decimals), also when it fails."""
-        start = time.perf_counter()
+        """Record the block's wall time as step ``name`` (s, 3 decimals), and where it computed, also when it fails:
+        the places of the executor's stages run inside it (``Executor.places``), else ``driver`` (this process,
+        with the threads of the libraries it calls)."""
+        start, stages = time.perf_counter(), len(self.executor.places)
         try:
             yield
         finally:
             self.seconds[name] = round(time.perf_counter() - start, 3)
+            self.places[name] = ", ".join(dict.fromkeys(self.executor.places[stages:])) or "driver"
 
     def timings(self) -> dict[str, float]:
         """Each timed step's seconds and their ``total``, as records keep them."""
         return {**self.seconds, "total": round(sum(self.seconds.values()), 3)}
+
+    def stage_table(self) -> list[dict]:
+        """Each timed step, in order: ``{"stage", "seconds", "ran_on"}`` (``local``, ``local: 2 processes``,
+        ``Ray: 4 workers``, ``driver``), as records keep them."""
+        return [{"stage": name, "seconds": seconds, "ran_on": self.places.get(name, "driver")}
+                for name, seconds in self.seconds.items()]
 
 
 @dataclass(frozen=True)

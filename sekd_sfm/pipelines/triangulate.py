@@ -517,7 +517,7 @@ def triangulate(image_dir: str | Path, poses: str | Path, output_dir: str | Path
         clean_logs(out / record.COLMAP_LOG)  # left by a killed run: nobody else uses them while we hold the lock
         state = run_steps(run, TRIANGULATE, state)
         stats.update(status="ok", model=triangulation_stats(state.result), output=str(out / record.MODEL),
-                     timings_s=run.timings())
+                     timings_s=run.timings(), stages=run.stage_table())
         record.write_record(stats, out)
     return out / record.MODEL
 

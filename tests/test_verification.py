@@ -1,0 +1,82 @@
+"""Geometric verification on the executor (sekd_sfm.stages.verification): pair for pair what pycolmap writes over
+the database, in this process or over worker processes, and a failed run resumes from the pairs it finished."""
+from __future__ import annotations
+
+import contextlib
+import shutil
+import sqlite3
+
+import numpy as np
+import pytest
+from test_verify import _database_with, _random_pair, _true_pair
+
+from sekd_sfm.errors import SekdError
+from sekd_sfm.execution import LocalExecutor
+from sekd_sfm.stages import verification
+from sekd_sfm.stages.database import two_view_options, verify_matches
+
+
+def _rows(database) -> list:
+    """Every pair's two-view geometry as the database stores it (inliers, config, matrices, pose), by pair id."""
+    with contextlib.closing(sqlite3.connect(database)) as db:
+        return db.execute("SELECT pair_id, rows, data, config, F, E, H, qvec, tvec FROM two_view_geometries "
+                          "ORDER BY pair_id").fetchall()
+
+
+@pytest.fixture
+def database(tmp_path):
+    """Six hand-made pairs: three of one scene (40-120 inliers among outliers), two of unrelated matches, one with
+    too few matches to verify."""
+    rng = np.random.default_rng(4)
+    pairs = [tuple(_true_pair(rng, n, 50)[:3]) for n in (40, 80, 120)]
+    pairs += [_random_pair(rng, 45), _random_pair(rng, 60), tuple(_true_pair(rng, 12, 0)[:3])]
+    path, _ = _database_with(tmp_path, pairs)
+    return path
+
+
+def test_the_stage_writes_what_pycolmap_writes_here_and_over_processes(database, tmp_path, monkeypatch):
+    reference = shutil.copy(database, tmp_path / "reference.db")
+    verify_matches(reference, two_view_options(), num_threads=2)
+    monkeypatch.setattr(verification, "PAIRS_PER_TASK", 2)  # three tasks: both processes work
+    for processes in (1, 2):
+        copy = shutil.copy(database, tmp_path / f"stage{processes}.db")
+        executor = LocalExecutor(processes)
+        assert verification.verify_pairs(copy, two_view_options(), executor, progress=False) == copy
+        assert executor.places == ["local" if processes == 1 else "local: 2 processes"]
+        assert _rows(copy) == _rows(reference)
+        assert sum(row[1] > 0 for row in _rows(copy)) == 3  # the three true pairs, and only those
+        assert not list(tmp_path.glob(f"stage{processes}-verification.h5*"))  # the parts go once written
+
+
+def test_a_failed_verification_resumes_from_the_pairs_it_finished(database, tmp_path, monkeypatch):
+    reference = shutil.copy(database, tmp_path / "reference.db")
+    verification.verify_pairs(reference, two_view_options(), LocalExecutor(1), progress=False)
+    computed: list[str] = []
+    original = verification.VerifyWorker.__call__
+
+    def fails_on_the_fourth(self, keys):
+        for key in keys:
+            computed.append(key)
+            if len(computed) == 4:
+                raise SekdError("verification: the fourth pair fails")
+            yield from original(self, [key])
+
+    monkeypatch.setattr(verification.VerifyWorker, "__call__", fails_on_the_fourth)
+    with pytest.raises(SekdError, match="fourth pair fails"):
+        verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="s")
+    assert (tmp_path / "database-verification.h5").exists() or (tmp_path / "database-verification.h5.parts").exists()
+    computed.clear()
+    monkeypatch.setattr(verification.VerifyWorker, "__call__",
+                        lambda self, keys: (computed.extend(keys), original(self, keys))[1])
+    verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="s")
+    assert len(computed) == 3 and _rows(database) == _rows(reference)
+    # A failed run's pairs are not reused for other inputs (another signature).
+    computed.clear()
+    monkeypatch.setattr(verification.VerifyWorker, "__call__", fails_on_the_fourth)
+    with pytest.raises(SekdError, match="fourth pair fails"):
+        verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="s")
+    computed.clear()
+    monkeypatch.setattr(verification.VerifyWorker, "__call__",
+                        lambda self, keys: (computed.extend(keys), original(self, keys))[1])
+    verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="t")
+    assert len(computed) == 6 and _rows(database) == _rows(reference)
