@@ -29,15 +29,8 @@ CG=/sys/fs/cgroup/cpuacct/sekdbench$$   # CPU accounting of each side
 mkdir -p "$OUT/images"
 REPORT="$OUT/bench_ray.txt"
 
-stop() {  # every process of the namespace is ours (Ray's); stop them by PID, then remove it
-  for sig in TERM KILL; do
-    for pid in $(ip netns pids "$NS" 2>/dev/null); do kill -s $sig "$pid" 2>/dev/null || true; done
-    sleep 2
-  done
-  ip netns del "$NS" 2>/dev/null || true
-  rm -rf "$TEMP"
-  rmdir "$CG/local" "$CG/ray" "$CG" 2>/dev/null || true
-}
+source "$(dirname "$0")/ray_netns.sh"
+stop() { ray_netns_stop "$NS" "$TEMP"; rmdir "$CG/local" "$CG/ray" "$CG" 2>/dev/null || true; }
 trap stop EXIT
 
 set +o pipefail  # head stops reading early, which ends ls with SIGPIPE: not a failure

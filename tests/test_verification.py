@@ -80,3 +80,18 @@ def test_a_failed_verification_resumes_from_the_pairs_it_finished(database, tmp_
                         lambda self, keys: (computed.extend(keys), original(self, keys))[1])
     verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="t")
     assert len(computed) == 6 and _rows(database) == _rows(reference)
+
+
+def test_a_geometry_survives_its_arrays_with_or_without_a_pose():
+    import pycolmap
+
+    geometry = pycolmap.TwoViewGeometry({"config": 2, "tri_angle": 0.1, "F": np.arange(9.0).reshape(3, 3),
+                                         "E": np.eye(3), "inlier_matches": np.array([[0, 1], [2, 3]], np.uint32)})
+    geometry.cam2_from_cam1 = pycolmap.Rigid3d(np.hstack([np.eye(3), [[1.0], [2.0], [3.0]]]))
+    back = verification.geometry_from_arrays(verification.geometry_arrays(geometry))
+    assert int(back.config) == 2 and back.tri_angle == pytest.approx(0.1) and back.H is None
+    assert np.array_equal(back.F, geometry.F) and np.array_equal(back.E, np.eye(3))
+    assert np.array_equal(back.inlier_matches, geometry.inlier_matches)
+    assert np.allclose(back.cam2_from_cam1.matrix(), geometry.cam2_from_cam1.matrix())
+    failed = verification.geometry_from_arrays(verification.geometry_arrays(pycolmap.TwoViewGeometry({"config": 1})))
+    assert int(failed.config) == 1 and len(failed.inlier_matches) == 0 and failed.F is None

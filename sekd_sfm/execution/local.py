@@ -1,8 +1,8 @@
 """Run a stage on this machine: its worker over the batches, results into the part store, one progress bar.
 
-A stage whose worker is single-threaded Python and NumPy (``Stage.local_processes``: keypoint refinement)
-is spread over worker processes, one per core; the others (extraction and matching, whose torch already
-uses every core) run in this process.
+A stage whose worker is single-threaded (``Stage.local_processes``: keypoint refinement's NumPy, geometric
+verification's RANSAC) is spread over worker processes, one per core; the others (extraction and matching,
+whose torch already uses every core) run in this process.
 """
 from __future__ import annotations
 
@@ -88,8 +88,8 @@ def _in_processes(stage: Stage, processes: int) -> Iterator[Result]:
 
     Forked where the system can (Linux): a spawned process would run the caller's script again from the top,
     which a script without ``if __name__ == "__main__":`` cannot take, and would pay ~0.3 s of imports. The
-    workers that ask for processes use NumPy, SciPy, OpenCV and h5py, which work in a forked child, never torch
-    (whose OpenMP threads, started by extraction in the parent, would not exist in it)."""
+    workers that ask for processes use NumPy, SciPy, OpenCV, h5py and pycolmap, which work in a forked child,
+    never torch (whose OpenMP threads, started by extraction in the parent, would not exist in it)."""
     tasks = [[key for batch in stage.batches[i:i + stage.per_task] for key in batch]
              for i in range(0, len(stage.batches), stage.per_task)]
     method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"

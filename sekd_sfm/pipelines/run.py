@@ -36,8 +36,8 @@ class RunOptions:
 
     #: Recompute features and matches instead of reusing the files an earlier run left in the output folder.
     overwrite: bool = False
-    #: CPU threads of extraction, matching and geometric verification, and the worker processes of keypoint
-    #: refinement (None: every core the process may use).
+    #: CPU threads of extraction, matching and mapping, and the worker processes of keypoint refinement and
+    #: geometric verification (None: every core the process may use).
     num_threads: int | None = None
     progress: bool = True
     #: Where stages spread over items run: ``local`` (this machine) or ``ray`` (the cluster of ``ray_options``).

@@ -27,70 +27,91 @@ from .colmap import open_database, require_pycolmap
 logger = logging.getLogger("sekd")
 
 FORMAT = "sekd-verification-pairs"
-#: Pairs per task (a process's or Ray worker's call): ~2 s of RANSAC on pairs of no common surface.
-PAIRS_PER_TASK = 32
-#: The geometry's matrices, stored as 3 x 3 arrays where pycolmap gives them.
+#: Pairs per task (a process's or Ray worker's call): ~0.8 s of RANSAC on pairs of no common surface, so the
+#: last tasks leave few cores idle; a Ray cluster grows it with its size (``execution.task_size``).
+PAIRS_PER_TASK = 8
+#: The geometry's 3 x 3 matrices.
 MATRICES = ("E", "F", "H")
 #: pycolmap's TwoViewGeometry configs of a pair that did not verify (UNDEFINED, DEGENERATE).
 FAILED = (0, 1)
 
 
+#: The layout of a pair's ``geometry`` array: config, tri_angle (rad), F, E, H (row-major 3 x 3),
+#: cam2_from_cam1 (3 x 4); NaN where pycolmap gives none. One array, not seven: HDF5's cost is per dataset.
+GEOMETRY_SLICES = {"config": slice(0, 1), "tri_angle": slice(1, 2), "F": slice(2, 11), "E": slice(11, 20),
+                   "H": slice(20, 29), "cam2_from_cam1": slice(29, 41)}
+
+
 def geometry_arrays(geometry) -> dict[str, np.ndarray]:
-    """A ``pycolmap.TwoViewGeometry`` as arrays: ``config``, ``inlier_matches`` (``K x 2`` uint32), ``tri_angle``
-    (rad), the 3 x 3 matrices it has, ``cam2_from_cam1`` (3 x 4) when it has one. A pair that failed (config
-    UNDEFINED or DEGENERATE) keeps its config alone, as COLMAP's verifier stores it."""
+    """A ``pycolmap.TwoViewGeometry`` as two arrays: ``inlier_matches`` (``K x 2`` uint32) and ``geometry``
+    (``GEOMETRY_SLICES``). A pair that failed (config UNDEFINED or DEGENERATE) keeps its config alone, as COLMAP's
+    verifier stores it."""
+    values = np.full(41, np.nan)
+    values[0] = int(geometry.config)
     if int(geometry.config) in FAILED:
-        return {"config": np.int64(int(geometry.config)), "tri_angle": np.float64(-1.0),
-                "inlier_matches": np.zeros((0, 2), np.uint32)}
-    arrays = {"config": np.int64(int(geometry.config)), "tri_angle": np.float64(geometry.tri_angle),
-              "inlier_matches": np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2)}
-    arrays.update({name: np.asarray(getattr(geometry, name)) for name in MATRICES if getattr(geometry, name) is not None})
+        values[1] = -1.0
+        return {"inlier_matches": np.zeros((0, 2), np.uint32), "geometry": values}
+    values[1] = geometry.tri_angle
+    for name in MATRICES:
+        if getattr(geometry, name) is not None:
+            values[GEOMETRY_SLICES[name]] = np.asarray(getattr(geometry, name)).ravel()
     if geometry.cam2_from_cam1 is not None:
-        arrays["cam2_from_cam1"] = np.asarray(geometry.cam2_from_cam1.matrix())
-    return arrays
+        values[GEOMETRY_SLICES["cam2_from_cam1"]] = np.asarray(geometry.cam2_from_cam1.matrix()).ravel()
+    return {"inlier_matches": np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2), "geometry": values}
 
 
 def geometry_from_arrays(arrays: dict[str, np.ndarray]):
     """The ``pycolmap.TwoViewGeometry`` of ``geometry_arrays``."""
     pycolmap = require_pycolmap()
-    fields = {"config": int(arrays["config"]), "tri_angle": float(arrays["tri_angle"]),
+    values = arrays["geometry"]
+    fields = {"config": int(values[0]), "tri_angle": float(values[1]),
               "inlier_matches": np.asarray(arrays["inlier_matches"], np.uint32).reshape(-1, 2)}
-    fields.update({name: np.asarray(arrays[name], np.float64) for name in MATRICES if name in arrays})
+    fields.update({name: values[GEOMETRY_SLICES[name]].reshape(3, 3) for name in MATRICES
+                   if not np.isnan(values[GEOMETRY_SLICES[name]]).any()})
     geometry = pycolmap.TwoViewGeometry(fields)
-    if "cam2_from_cam1" in arrays:
-        geometry.cam2_from_cam1 = pycolmap.Rigid3d(np.asarray(arrays["cam2_from_cam1"], np.float64))
+    pose = values[GEOMETRY_SLICES["cam2_from_cam1"]]
+    if not np.isnan(pose).any():
+        geometry.cam2_from_cam1 = pycolmap.Rigid3d(pose.reshape(3, 4))
     return geometry
 
 
 class VerifyWorker:
     """Verification's per-pair work (an ``execution.Stage`` worker): for each pair key (``matches.pair_key`` of
-    two image names), the two-view geometry of its matches in ``database``. Built once per process."""
+    two image names), the two-view geometry of its matches. Built once per process from the driver's cameras
+    (``camera_id -> pycolmap.Camera``) and images (``name -> (image_id, camera_id)``); reads keypoints and
+    matches from ``database`` through SQLite read-only, since pycolmap's ``Database.open`` writes (its schema)
+    and fails with "database is locked" when several workers open the file at once."""
 
-    def __init__(self, database: str, options):
+    def __init__(self, database: str, cameras: dict, images: dict[str, tuple[int, int]], options):
         self.pycolmap = require_pycolmap()
-        self.database, self.options = database, options
-        with open_database(Path(database)) as db:
-            images = db.read_all_images()
-            self.cameras = {camera.camera_id: camera for camera in db.read_all_cameras()}
-        self.images = {image.name: image for image in images}
+        self.database, self.cameras, self.images, self.options = database, cameras, images, options
         self.keypoints: dict[int, np.ndarray] = {}
 
-    def _keypoints(self, db, image_id: int) -> np.ndarray:
+    def _keypoints(self, db: sqlite3.Connection, image_id: int) -> np.ndarray:
+        """An image's keypoints (``N x 2`` float64, COLMAP pixels), a few hundred images cached."""
         if image_id not in self.keypoints:
             if len(self.keypoints) > 256:  # a task's pairs share few images: keep memory flat on big scenes
                 self.keypoints.clear()
-            self.keypoints[image_id] = db.read_keypoints(image_id)[:, :2].astype(np.float64)
+            rows, cols, data = db.execute("SELECT rows, cols, data FROM keypoints WHERE image_id = ?",
+                                          (image_id,)).fetchone()
+            self.keypoints[image_id] = np.frombuffer(data, np.float32).reshape(rows, cols)[:, :2].astype(np.float64)
         return self.keypoints[image_id]
 
+    def _matches(self, db: sqlite3.Connection, image_id1: int, image_id2: int) -> np.ndarray:
+        """The raw matches (``M x 2`` uint32, indices into image 1's then image 2's keypoints)."""
+        pair_id = self.pycolmap.image_pair_to_pair_id(image_id1, image_id2)
+        rows, data = db.execute("SELECT rows, data FROM matches WHERE pair_id = ?", (pair_id,)).fetchone()
+        matches = np.frombuffer(data, np.uint32).reshape(rows, 2)
+        return matches[:, ::-1].copy() if image_id1 > image_id2 else matches  # stored from the lower id
+
     def __call__(self, keys: list[str]):
-        with open_database(Path(self.database)) as db:
+        with contextlib.closing(sqlite3.connect(f"file:{self.database}?mode=ro", uri=True)) as db:
             for key in keys:
                 name1, name2 = json.loads(key)
-                image1, image2 = self.images[name1], self.images[name2]
-                matches = db.read_matches(image1.image_id, image2.image_id)
+                (id1, camera1), (id2, camera2) = self.images[name1], self.images[name2]
                 geometry = self.pycolmap.estimate_two_view_geometry(
-                    self.cameras[image1.camera_id], self._keypoints(db, image1.image_id),
-                    self.cameras[image2.camera_id], self._keypoints(db, image2.image_id), matches, self.options)
+                    self.cameras[camera1], self._keypoints(db, id1), self.cameras[camera2], self._keypoints(db, id2),
+                    self._matches(db, id1, id2), self.options)
                 yield key, geometry_arrays(geometry), ""
 
 
@@ -120,19 +141,21 @@ def verify_pairs(database: str | Path, options, executor: str | Executor = "loca
     """
     database = Path(database)
     pairs = _matched_pairs(database)
+    with open_database(database) as db:
+        cameras = {camera.camera_id: camera for camera in db.read_all_cameras()}
+        images = {image.name: (image.image_id, image.camera_id) for image in db.read_all_images()}
     signature = json.dumps({"inputs": signature, "options": str(options.todict())}, sort_keys=True)
     results = PairResults(_parts_file(database), FORMAT, signature, max_items=256)
-    stage = Stage(name="verification", worker=VerifyWorker, args=(str(database.resolve()), options),
+    stage = Stage(name="verification", worker=VerifyWorker, args=(str(database.resolve()), cameras, images, options),
                   batches=results.missing([mf.pair_key(a, b) for a, b in pairs]), output=results.path,
                   write_group=write_pair_group, unit="pair", items="pairs", verb="verified", joinable=True,
                   per_task=PAIRS_PER_TASK, local_processes=True)
     with using(executor) as runner:
         geometries = results.compute(stage, runner, progress)
     with open_database(database) as db:
-        ids = {image.name: image.image_id for image in db.read_all_images()}
         db.clear_two_view_geometries()
         for name1, name2 in pairs:
-            db.write_two_view_geometry(ids[name1], ids[name2],
+            db.write_two_view_geometry(images[name1][0], images[name2][0],
                                        geometry_from_arrays(geometries[mf.pair_key(name1, name2)]))
     results.remove()
     logger.info("%s: %d pairs verified", database, len(pairs))

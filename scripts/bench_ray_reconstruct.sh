@@ -1,0 +1,85 @@
+#!/usr/bin/env bash
+# `sekd reconstruct` on a two-raylet Ray cluster against the same run locally, stage by stage.
+#
+# Generates a city-block walk (`sekd bench scale --generate-only`), starts two raylets of one CPU
+# each inside a network namespace (loopback only: nothing binds an outward address; needs root and
+# iproute2), then reconstructs the walk with `--executor local --num-threads 1` and with
+# `--executor ray --num-threads 1`, ROUNDS times each, alternately. Per run: wall time, the stage
+# table of stats.json (seconds, where each stage ran), registered photos and pose AUC@5 against the
+# true cameras. The cluster is stopped by the namespace's PIDs, also on failure.
+# Results: $OUT/bench_ray_reconstruct.txt and .json (numbers in docs/cluster.md).
+#
+# Usage: scripts/bench_ray_reconstruct.sh [N_PHOTOS]
+#   OUT=folder      work folder (default: a new temporary folder); a scene already there is reused
+#   ROUNDS=1        local/ray pairs of runs
+set -euo pipefail
+
+N=${1:-100}
+ROUNDS=${ROUNDS:-1}
+OUT=${OUT:-$(mktemp -d)}
+NS=sekdrecon$$
+PORT=$((21000 + $$ % 20000))
+TEMP=/tmp/sekdrecon$$
+REPORT="$OUT/bench_ray_reconstruct.txt"
+mkdir -p "$OUT"
+
+source "$(dirname "$0")/ray_netns.sh"
+stop() { ray_netns_stop "$NS" "$TEMP"; }
+trap stop EXIT
+
+SCENE="$OUT/scene/n$N/scene"
+[ -d "$SCENE/images" ] || sekd bench scale --sizes "$N" --generate-only -o "$OUT/scene" >"$OUT/generate.log" 2>&1
+
+ip netns add "$NS"
+ip netns exec "$NS" ip link set lo up
+COMMON=(--num-cpus 1 --object-store-memory $((1 << 30)) --disable-usage-stats)
+ip netns exec "$NS" ray start --head --port "$PORT" --include-dashboard=false --temp-dir "$TEMP" "${COMMON[@]}" \
+  >"$OUT/ray_head.log" 2>&1
+ip netns exec "$NS" ray start --address "127.0.0.1:$PORT" "${COMMON[@]}" >"$OUT/ray_node.log" 2>&1
+
+run() {  # run NAME CMD...: reconstruct the scene into $OUT/NAME; prints its wall time (s)
+  local name=$1; shift
+  local t0
+  rm -rf "${OUT:?}/$name"
+  t0=$(date +%s.%N)
+  "$@" "$SCENE/images" -o "$OUT/$name" --num-threads 1 --no-progress >"$OUT/$name.log" 2>&1
+  echo "$(date +%s.%N) - $t0" | bc -l
+}
+
+echo "# sekd reconstruct: $N generated photos; $(nproc) cores; $(date -u +%FT%TZ); load before: $(cut -d' ' -f1-3 /proc/loadavg)" \
+  | tee "$REPORT"
+WALLS=()
+for round in $(seq "$ROUNDS"); do
+  WALLS+=("local$round=$(run "local$round" sekd reconstruct)")
+  WALLS+=("ray$round=$(run "ray$round" ip netns exec "$NS" sekd reconstruct --executor ray --ray-address "127.0.0.1:$PORT")")
+done
+echo "# load after: $(cut -d' ' -f1-3 /proc/loadavg)" | tee -a "$REPORT"
+
+python - "$OUT" "$SCENE" "${WALLS[@]}" <<'EOF' | tee -a "$REPORT"
+import json, sys
+from pathlib import Path
+from sekd_sfm.bench.scale.covisibility import read_covisibility
+from sekd_sfm.bench.scale.run import evaluate_model
+from sekd_sfm.bench.scale.scene import read_scene
+from sekd_sfm.runtime import run_record
+
+out, scene_dir = Path(sys.argv[1]), Path(sys.argv[2])
+walls = dict(arg.split("=") for arg in sys.argv[3:])
+scene, covisibility = read_scene(scene_dir), read_covisibility(scene_dir)
+runs = {}
+for name, wall in walls.items():
+    stats = json.loads((out / name / "stats.json").read_text())
+    accuracy = evaluate_model(out / name / "model", scene, covisibility)
+    runs[name] = {"wall_s": round(float(wall), 1), "registered": accuracy["registered"],
+                  "scene_images": accuracy["scene_images"], "auc5": round(accuracy["auc5"], 4),
+                  "stages": stats["stages"]}
+    print(f"{name:8s} wall {float(wall):7.1f} s  registered {accuracy['registered']}/{accuracy['scene_images']}"
+          f"  AUC@5 {accuracy['auc5']:.3f}")
+    for row in stats["stages"]:
+        print(f"    {row['stage']:<16s} {row['seconds']:8.1f}  {row['ran_on']}")
+for round in sorted({name[-1] for name in walls}):
+    local, ray = runs.get(f"local{round}"), runs.get(f"ray{round}")
+    if local and ray:
+        print(f"round {round}: Ray {local['wall_s'] / ray['wall_s']:.2f}x faster than local")
+(out / "bench_ray_reconstruct.json").write_text(json.dumps({"record": run_record(), "runs": runs}, indent=1))
+EOF
