@@ -55,8 +55,9 @@ for round in $(seq "$ROUNDS"); do
 done
 echo "# load after: $(cut -d' ' -f1-3 /proc/loadavg)" | tee -a "$REPORT"
 
+export COMMAND="ROUNDS=$ROUNDS scripts/bench_ray_reconstruct.sh $N"  # for the record
 python - "$OUT" "$SCENE" "${WALLS[@]}" <<'EOF' | tee -a "$REPORT"
-import json, sys
+import json, os, sys
 from pathlib import Path
 from sekd_sfm.bench.scale.covisibility import read_covisibility
 from sekd_sfm.bench.scale.run import evaluate_model
@@ -81,5 +82,6 @@ for round in sorted({name[-1] for name in walls}):
     local, ray = runs.get(f"local{round}"), runs.get(f"ray{round}")
     if local and ray:
         print(f"round {round}: Ray {local['wall_s'] / ray['wall_s']:.2f}x faster than local")
-(out / "bench_ray_reconstruct.json").write_text(json.dumps({"record": run_record(), "runs": runs}, indent=1))
+record = {**run_record(), "command": os.environ["COMMAND"]}
+(out / "bench_ray_reconstruct.json").write_text(json.dumps({"record": record, "runs": runs}, indent=1))
 EOF
