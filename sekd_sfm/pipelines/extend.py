@@ -48,6 +48,7 @@ from ..stages.colmap import (
     colmap_log,
     log_prefix,
     open_database,
+    read_only_database,
     require_pycolmap,
     set_options,
 )
@@ -433,17 +434,16 @@ def verify_new_pairs(database: Path, pairs: list, options, num_threads: int) -> 
 
 
 def database_names(path: Path) -> set[str]:
-    """The image names of a COLMAP database, read without writing to it (COLMAP's own open may)."""
+    """The image names of a COLMAP database, read without writing to it (``colmap.read_only_database``)."""
     if not path.is_file():
         raise SekdError(f"{path}: missing, so the model cannot be extended; rebuild it without --extend")
-    with contextlib.closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
+    with read_only_database(path) as db:
         return {name for (name,) in db.execute("SELECT name FROM images")}
 
 
 def copy_database(source: Path, target: Path) -> None:
     """A copy of the SQLite database ``source`` (with whatever its write-ahead log still holds) at ``target``."""
-    with contextlib.closing(sqlite3.connect(f"file:{source}?mode=ro", uri=True)) as src, \
-            contextlib.closing(sqlite3.connect(target)) as dst:
+    with read_only_database(source) as src, contextlib.closing(sqlite3.connect(target)) as dst:
         src.backup(dst)
 
 
@@ -459,7 +459,7 @@ def settle_database(path: Path) -> None:
 def _check_features(features: Path, database: Path, known: list[str]) -> None:
     """SekdError unless the feature file still has, for each photo of the database, its keypoint count there
     (a re-extraction would renumber the keypoints the model's observations refer to)."""
-    with contextlib.closing(sqlite3.connect(f"file:{database}?mode=ro", uri=True)) as db:
+    with read_only_database(database) as db:
         counts = dict(db.execute("SELECT images.name, keypoints.rows FROM images "
                                  "JOIN keypoints ON images.image_id = keypoints.image_id"))
     with h5py.File(features, "r") as f:

@@ -5,10 +5,12 @@ tested range below (checked at import with a clear error outside it).
 """
 from __future__ import annotations
 
+import contextlib
 import difflib
 import importlib
 import os
-from collections.abc import Iterable
+import sqlite3
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -50,6 +52,15 @@ def open_database(path: Path):
     if hasattr(pycolmap.Database, "open"):
         return pycolmap.Database.open(str(path))
     return pycolmap.Database(str(path))
+
+
+@contextmanager
+def read_only_database(path: str | Path) -> Iterator[sqlite3.Connection]:
+    """The COLMAP database ``path`` opened by SQLite, read-only. pycolmap's ``Database.open`` writes (its schema):
+    two processes opening a file at once can fail with "database is locked", and a file that must stay as it is
+    could change."""
+    with contextlib.closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
+        yield db
 
 
 def delete_verified_pairs(database: str | Path, pairs: Iterable[tuple[int, int]]) -> None:

@@ -11,7 +11,6 @@ feature and match files do.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import sqlite3
@@ -22,7 +21,7 @@ import numpy as np
 from ..execution import Executor, Stage, using
 from ..files import matches as mf
 from ..files.pairresults import PairResults, write_pair_group
-from .colmap import open_database, require_pycolmap
+from .colmap import open_database, read_only_database, require_pycolmap
 
 logger = logging.getLogger("sekd")
 
@@ -80,7 +79,7 @@ class VerifyWorker:
     two image names), the two-view geometry of its matches. Built once per process from the driver's cameras
     (``camera_id -> pycolmap.Camera``) and images (``name -> (image_id, camera_id)``); reads keypoints and
     matches from ``database`` through SQLite read-only, since pycolmap's ``Database.open`` writes (its schema)
-    and fails with "database is locked" when several workers open the file at once."""
+    and fails with "database is locked" when several workers open the file at once (``colmap.read_only_database``)."""
 
     def __init__(self, database: str, cameras: dict, images: dict[str, tuple[int, int]], options):
         self.pycolmap = require_pycolmap()
@@ -105,7 +104,7 @@ class VerifyWorker:
         return matches[:, ::-1].copy() if image_id1 > image_id2 else matches  # stored from the lower id
 
     def __call__(self, keys: list[str]):
-        with contextlib.closing(sqlite3.connect(f"file:{self.database}?mode=ro", uri=True)) as db:
+        with read_only_database(self.database) as db:
             for key in keys:
                 name1, name2 = json.loads(key)
                 (id1, camera1), (id2, camera2) = self.images[name1], self.images[name2]
@@ -115,15 +114,13 @@ class VerifyWorker:
                 yield key, geometry_arrays(geometry), ""
 
 
-def _matched_pairs(database: Path) -> list[tuple[str, str]]:
-    """The pairs of ``database`` with matches, as image names, in pair-id order (the matches table read for its
-    ids only: the match arrays stay on disk)."""
+def _matched_pairs(database: Path, names: dict[int, str]) -> list[tuple[str, str]]:
+    """The pairs of ``database`` with matches, as image names (``names``: image id -> name), in pair-id order (the
+    matches table read for its ids only: the match arrays stay on disk)."""
     pycolmap = require_pycolmap()
-    with contextlib.closing(sqlite3.connect(f"file:{database}?mode=ro", uri=True)) as db:
-        names = dict(db.execute("SELECT image_id, name FROM images"))
+    with read_only_database(database) as db:
         pair_ids = [row[0] for row in db.execute("SELECT pair_id FROM matches WHERE rows > 0 ORDER BY pair_id")]
-    pairs = [pycolmap.pair_id_to_image_pair(pair_id) for pair_id in pair_ids]
-    return [(names[a], names[b]) for a, b in pairs]
+    return [tuple(names[image_id] for image_id in pycolmap.pair_id_to_image_pair(pair_id)) for pair_id in pair_ids]
 
 
 def _parts_file(database: Path) -> Path:
@@ -140,10 +137,10 @@ def verify_pairs(database: str | Path, options, executor: str | Executor = "loca
     options finished are reused.
     """
     database = Path(database)
-    pairs = _matched_pairs(database)
     with open_database(database) as db:
         cameras = {camera.camera_id: camera for camera in db.read_all_cameras()}
         images = {image.name: (image.image_id, image.camera_id) for image in db.read_all_images()}
+    pairs = _matched_pairs(database, {image_id: name for name, (image_id, _) in images.items()})
     signature = json.dumps({"inputs": signature, "options": str(options.todict())}, sort_keys=True)
     results = PairResults(_parts_file(database), FORMAT, signature, max_items=256)
     stage = Stage(name="verification", worker=VerifyWorker, args=(str(database.resolve()), cameras, images, options),
