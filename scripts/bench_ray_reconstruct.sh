@@ -12,6 +12,8 @@
 # Usage: scripts/bench_ray_reconstruct.sh [N_PHOTOS]
 #   OUT=folder      work folder (default: a new temporary folder); a scene already there is reused
 #   ROUNDS=1        local/ray pairs of runs
+#   ARGS="..."      more options of both runs, e.g. ARGS="--mapper-type hierarchical --mapper
+#                   clustering_options.leaf_max_num_images=50" (clusters of 50 photos, mapped on the workers)
 set -euo pipefail
 
 N=${1:-100}
@@ -42,7 +44,8 @@ run() {  # run NAME CMD...: reconstruct the scene into $OUT/NAME; prints its wal
   local t0
   rm -rf "${OUT:?}/$name"
   t0=$(date +%s.%N)
-  "$@" "$SCENE/images" -o "$OUT/$name" --num-threads 1 --no-progress >"$OUT/$name.log" 2>&1
+  # shellcheck disable=SC2086  # ARGS: options split on spaces
+  "$@" "$SCENE/images" -o "$OUT/$name" --num-threads 1 --no-progress ${ARGS:-} >"$OUT/$name.log" 2>&1
   echo "$(date +%s.%N) - $t0" | bc -l
 }
 
@@ -55,7 +58,7 @@ for round in $(seq "$ROUNDS"); do
 done
 echo "# load after: $(cut -d' ' -f1-3 /proc/loadavg)" | tee -a "$REPORT"
 
-export COMMAND="ROUNDS=$ROUNDS scripts/bench_ray_reconstruct.sh $N"  # for the record
+export COMMAND="ROUNDS=$ROUNDS ARGS=\"${ARGS:-}\" scripts/bench_ray_reconstruct.sh $N"  # for the record
 python - "$OUT" "$SCENE" "${WALLS[@]}" <<'EOF' | tee -a "$REPORT"
 import json, os, sys
 from pathlib import Path

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -26,6 +27,7 @@ class Squares:
             if key == "bad":
                 yield key, None, "unreadable"
                 continue
+            time.sleep(0.05)  # a task outlasts a process's start: both processes take some, however busy the machine
             yield key, {"value": np.array([int(key) ** 2 + self.offset]), "pid": np.array([os.getpid()])}, ""
 
 

@@ -458,9 +458,15 @@ def test_ray_start_up_notes_go_to_the_debug_log(capfd, caplog):
     assert "Failed to determine local IP" in caplog.text
 
 
+#: The hierarchical mapper in clusters of 3 photos (+2 shared): 5 photos give two clusters, mapped on two workers.
+SMALL_CLUSTERS = ("--mapper-type", "hierarchical", "--mapper", "clustering_options.leaf_max_num_images=3",
+                  "--mapper", "clustering_options.image_overlap=2", "--mapper", "incremental_options.min_model_size=3")
+
+
 def test_reconstruct_on_ray(cluster, tmp_path):
-    """``sekd reconstruct --executor ray``: extraction and matching on the cluster, mapping here; 5 fountain-P11
-    photos at 640 px all registered, and the feature file equal to a one-thread local extraction."""
+    """``sekd reconstruct --executor ray``: every per-item stage on the cluster (extraction, matching, refinement,
+    verification, the hierarchical mapper's clusters); 5 fountain-P11 photos at 640 px all registered, and the
+    files and the model those of a local run."""
     fountain = SHARED / "data/sfm/fountain-P11/images"
     if not fountain.is_dir():
         pytest.skip(f"shared data not found at {fountain}")
@@ -470,7 +476,8 @@ def test_reconstruct_on_ray(cluster, tmp_path):
         (images / src.name).symlink_to(src)
     out = tmp_path / "out"
     run = subprocess.run(_ray_cli(cluster, "reconstruct", str(images), "-o", str(out), "--resize-max", "640",
-                                  "--no-progress"), check=False, capture_output=True, text=True, timeout=600)
+                                  "--no-progress", *SMALL_CLUSTERS), check=False, capture_output=True, text=True,
+                         timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     assert re.search(r"Ray: 5 imgs in ", run.stderr), run.stderr[-2000:]
     assert re.search(r"Ray: 10 pairs in ", run.stderr), run.stderr[-2000:]
@@ -479,8 +486,9 @@ def test_reconstruct_on_ray(cluster, tmp_path):
     stats = json.loads((out / "stats.json").read_text())
     assert stats["status"] == "ok" and stats["model"]["registered_images"] == 5
     places = {row["stage"]: row["ran_on"] for row in stats["stages"]}
-    assert all(places[stage].startswith("Ray: ") for stage in ("extract", "match", "refine", "verification"))
-    assert places["mapping"] == "driver"
+    assert all(places[stage].startswith("Ray: ") for stage in ("extract", "match", "refine", "verification",
+                                                                "mapping"))
+    assert re.search(r"Ray: 2 clusters in ", run.stderr), run.stderr[-2000:]
     local = extract_features(images, tmp_path / "local.h5", FeatureConfig(resize_max=640), progress=False,
                              num_threads=1)
     assert _contents(out / "features.h5") == _contents(local)
@@ -490,10 +498,18 @@ def test_reconstruct_on_ray(cluster, tmp_path):
     for name in ("features.h5", "matches.h5"):
         shutil.copy(out / name, here / name)
     result = CliRunner().invoke(sekd, ["reconstruct", str(images), "-o", str(here), "--resize-max", "640",
-                                       "--no-progress"])
+                                       "--no-progress", *SMALL_CLUSTERS])
     assert result.exit_code == 0, result.output[-2000:]
     assert _contents(out / "features-refined.h5") == _contents(here / "features-refined.h5")
     assert _verified(out / "database.db") == _verified(here / "database.db")
+    # The same clusters, the same merge: the same cameras.
+    import pycolmap
+
+    ray_model, local_model = (pycolmap.Reconstruction(str(folder / "model")) for folder in (out, here))
+    poses = [{m.image(i).name: m.image(i).cam_from_world().matrix() for i in m.reg_image_ids()}
+             for m in (ray_model, local_model)]
+    assert poses[0].keys() == poses[1].keys() and all(np.allclose(poses[0][k], poses[1][k], atol=1e-6)
+                                                       for k in poses[0])
 
 
 def _verified(database: Path) -> list:

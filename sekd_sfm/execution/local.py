@@ -103,8 +103,21 @@ def _in_processes(stage: Stage, processes: int) -> Iterator[Result]:
                 yield from _finished(running)
         while running:
             yield from _finished(running)
+    except BaseException:
+        _stop_workers(pool)  # a task may run for minutes (a cluster's mapping): its work is lost either way
+        raise
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)  # queued tasks dropped; running ones end (seconds)
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Kill ``pool``'s worker processes at once (Ctrl-C, or a failed task: the others' running work is redone by
+    the next run)."""
+    if hasattr(pool, "kill_workers"):  # Python 3.14
+        pool.kill_workers()
+        return
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        process.kill()
 
 
 def _finished(running: set[Future]) -> Iterator[Result]:

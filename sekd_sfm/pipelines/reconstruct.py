@@ -438,8 +438,11 @@ def view_graph(run: Run, s: Reconstruction) -> Reconstruction:
 def mapping(run: Run, s: Reconstruction) -> Reconstruction:
     """The models (largest first), filtered after mapping, the principal point settled."""
     filtered: list = []
+    hierarchical: dict = {}
     s.models = run_mapper(s.database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
-                          final_filter=s.config.final_filter, records=filtered)
+                          final_filter=s.config.final_filter, records=filtered, executor=run.executor,
+                          details=hierarchical)
+    s.stats["hierarchical"] = hierarchical or None
     if not s.models and (s.stats.get("rig") or {}).get("estimated"):
         raise ReconstructionError(
             f"no model with the rig: the photos mapped as free photos ({s.stats['rig']['free_model_photos']} of them "
@@ -518,7 +521,7 @@ def _map_raw(run: Run, s: Reconstruction, database: Path) -> list:
     """The models of ``database`` (largest first) by the run's mapper and final filter, the principal point as
     mapped."""
     return run_mapper(database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
-                      final_filter=s.config.final_filter)
+                      final_filter=s.config.final_filter, executor=run.executor)
 
 
 def georeferencing(run: Run, s: Reconstruction) -> Reconstruction:

@@ -41,7 +41,7 @@ def _die_with_parent(parent_pid: int) -> None:
         os._exit(1)
 
 
-def _log_to(prefix: str | None, pycolmap) -> None:
+def quiet_colmap_log(prefix: str | None, pycolmap) -> None:
     """COLMAP's log (glog) into files named ``<prefix><date>-<time>.<pid>``, nothing on the console."""
     log = pycolmap.logging
     log.alsologtostderr, log.logtostderr, log.stderrthreshold, log.minloglevel = False, False, 3, 0
@@ -194,11 +194,33 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
     pycolmap.create_default_ceres_bundle_adjuster(options, config, reconstruction).solve()
 
 
+def merge_clusters(request: dict, options, pycolmap) -> dict:
+    """The models of the clusters mapped on the executor (``request["clusters"]``: their ``model_arrays``),
+    merged, triangulated again from the database, adjusted as a whole, and kept when they hold ``min_model_size``
+    photos. ``request["merge"]`` gets the record: pieces, models, seconds of each step."""
+    from .hierarchical import assemble, merge_pieces, pieces_of
+
+    inner = options.incremental_options
+    start = time.perf_counter()
+    pieces = [piece for arrays in request["clusters"] for piece in pieces_of(arrays)]
+    merged = [piece for piece in merge_pieces(pieces) if len(piece.poses) >= int(inner.min_model_size)]
+    aligned = time.perf_counter()
+    found = {k: assemble(piece, request["database"], request["image_dir"], inner,
+                         Path(request["scratch"]) / f"merge-{k}", pycolmap) for k, piece in enumerate(merged)}
+    triangulated = time.perf_counter()
+    for reconstruction in found.values():
+        bundle_adjust_merged(reconstruction, inner.num_threads, pycolmap)
+    request["merge"] = {"pieces": len(pieces), "models": [len(piece.poses) for piece in merged],
+                        "align_s": round(aligned - start, 3), "triangulate_s": round(triangulated - aligned, 3),
+                        "bundle_adjustment_s": round(time.perf_counter() - triangulated, 3)}
+    return found
+
+
 def run(request: dict) -> list:
     """Run the requested mapper; the reconstructions found, largest first."""
     import pycolmap
 
-    _log_to(request.get("log_prefix"), pycolmap)
+    quiet_colmap_log(request.get("log_prefix"), pycolmap)
     options, kind = request["options"], request["mapper_type"]
     pycolmap.set_random_seed(max(0, int(request.get("seed", 0))))
     args = (str(request["database"]), str(request["image_dir"]), str(request["scratch"]), options)
@@ -208,6 +230,8 @@ def run(request: dict) -> list:
                                              next_image_callback=lambda: _event("image"))
     elif kind == "global":
         found = pycolmap.global_mapping(*args)
+    elif kind == "hierarchical" and request.get("clusters") is not None:  # mapped on the executor
+        found = merge_clusters(request, options, pycolmap)
     elif kind == "hierarchical":
         found = pycolmap.hierarchical_mapping(*args)
         for reconstruction in found.values():
@@ -234,11 +258,14 @@ def main() -> int:
     _die_with_parent(int(request["parent_pid"]))
     models = run(request)
     result = Path(request["result"])
+    result.mkdir(parents=True, exist_ok=True)
     for k, reconstruction in enumerate(models):
         (result / str(k)).mkdir(parents=True, exist_ok=True)
         reconstruction.write_binary(str(result / str(k)))
         if request.get("records"):
             (result / f"{k}.json").write_text(json.dumps(request["records"][k]))
+    if request.get("merge"):
+        (result / "merge.json").write_text(json.dumps(request["merge"]))
     _event(f"done {len(models)}")
     return 0
 

@@ -35,6 +35,7 @@ from tqdm import tqdm
 
 from ..errors import Interrupted, SekdError
 from .colmap import open_database, require_pycolmap, set_options
+from .hierarchical import has_multi_camera_frames, map_clusters
 
 MAIN_MODEL = "model"
 MODELS = "models"
@@ -179,7 +180,8 @@ def clean_scratch(folder: Path) -> None:
 
 def run_mapper(database: str | Path, image_dir: str | Path, options=None, progress: bool = True,
                log_prefix: str | Path | None = None, input_model: str | Path | None = None,
-               final_filter: bool = False, records: list | None = None) -> list:
+               final_filter: bool = False, records: list | None = None, executor="local",
+               details: dict | None = None) -> list:
     """Map ``database`` with the mapper of ``options``; the reconstructions found, largest first (may be empty).
 
     ``options`` is one of pycolmap's pipeline option objects (``mapper_options``; default:
@@ -190,6 +192,9 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
     ``input_model``: a model to continue from (incremental mapper only; ``sekd reconstruct --extend``),
     its image ids those of ``database``. ``final_filter``: each model's outlying observations dropped and the
     model adjusted again (``mapper_worker.final_filter``); its record per model is appended to ``records``.
+    ``executor`` (a name or an open ``execution.Executor``): where the hierarchical mapper's clusters are mapped
+    (``stages.hierarchical``); the merge runs in the child. ``details`` gets the hierarchical mapper's record:
+    ``clusters`` (``hierarchical.map_clusters``) and ``merge`` (``mapper_worker.merge_clusters``).
     """
     require_pycolmap()
     options = options if options is not None else mapper_options()
@@ -201,12 +206,23 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
                "scratch": str(scratch / "work"), "result": str(scratch / "result"), "parent_pid": os.getpid(),
                "seed": _seed(options), "log_prefix": str(log_prefix) if log_prefix else None,
                "input_path": str(input_model) if input_model else "", "final_filter": final_filter}
+    details = {} if details is None else details
+    if kind == "hierarchical" and not has_multi_camera_frames(database):
+        try:
+            details["clusters"] = {}
+            request["clusters"] = map_clusters(database, image_dir, options, executor, log_prefix=log_prefix,
+                                               progress=progress, record=details["clusters"])
+        except BaseException:
+            shutil.rmtree(scratch, ignore_errors=True)
+            raise
     bar = _MapperProgress(total, kind, progress)
     try:
         _run_child(request, scratch, bar)
         reconstruction = require_pycolmap().Reconstruction
         folder = scratch / "result"
         results = sorted((p for p in folder.iterdir() if p.is_dir()), key=lambda p: int(p.name)) if folder.is_dir() else []
+        if (folder / "merge.json").is_file():
+            details["merge"] = json.loads((folder / "merge.json").read_text())
         if records is not None:
             records.extend(json.loads(p.with_suffix(".json").read_text()) if p.with_suffix(".json").is_file() else None
                            for p in results)

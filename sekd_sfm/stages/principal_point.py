@@ -410,7 +410,7 @@ def _reason(record: dict, problems: list[str], min_significance: float, min_gain
 
 def main() -> int:
     """The child process: test every model of the request, write the kept ones over the originals, report."""
-    from .mapper_worker import _die_with_parent, _event, _log_to
+    from .mapper_worker import _die_with_parent, _event, quiet_colmap_log
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides: on Ctrl-C it kills this process
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})  # inherited blocked from the parent's start
@@ -418,7 +418,7 @@ def main() -> int:
     _die_with_parent(int(request["parent_pid"]))
     import pycolmap
 
-    _log_to(request.get("log_prefix"), pycolmap)
+    quiet_colmap_log(request.get("log_prefix"), pycolmap)
     records = []
     for folder in request["models"]:
         refined, record = try_refinement(pycolmap.Reconstruction(folder), request["min_significance"],

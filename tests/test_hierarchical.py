@@ -1,0 +1,161 @@
+"""Hierarchical mapping on the executor (sekd_sfm.stages.hierarchical): clusters mapped in worker processes and
+merged into the true cameras; the same model from one process or two; a killed run resumes from its clusters."""
+from __future__ import annotations
+
+import contextlib
+import shutil
+import sqlite3
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from test_reconstruct import (
+    CALIBRATED,
+    SIFT,
+    arc,
+    look_at,
+    scene_points,
+    synthetic_views,
+    write_scene,
+)
+
+from sekd_sfm.errors import SekdError
+from sekd_sfm.execution import LocalExecutor
+from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
+from sekd_sfm.stages import hierarchical
+from sekd_sfm.stages.colmap import require_pycolmap
+from sekd_sfm.stages.mapping import mapper_options, run_mapper
+from sekd_sfm.stages.partition import ClusterOptions, partition, view_graph
+
+pycolmap = require_pycolmap()
+
+#: 24 views on a 200-degree arc, clusters of at most 8 photos (+4 shared): three clusters or more.
+VIEWS = 24
+OPTIONS = ["clustering_options.leaf_max_num_images=8", "clustering_options.image_overlap=4",
+           "incremental_options.min_model_size=4"]
+
+
+def _pose(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    return np.c_[rotation, translation]
+
+
+def _true_poses(n: int = 12) -> dict[int, np.ndarray]:
+    return {k + 1: _pose(*look_at(c)) for k, c in enumerate(arc(n, span_deg=120))}
+
+
+def _in_other_world(poses: dict[int, np.ndarray], scale: float, rotation: np.ndarray, translation: np.ndarray):
+    """The same cameras in a world ``x' = scale * rotation @ x + translation``."""
+    return {k: hierarchical.moved(p, scale, rotation, translation) for k, p in poses.items()}
+
+
+def test_the_similarity_of_two_worlds_from_shared_cameras_on_a_line():
+    truth = {k + 1: _pose(*look_at(np.array([k * 0.5, 0.0, -5.0]))) for k in range(8)}  # centres on a line
+    rotation = Rotation.from_euler("xyz", [20, -35, 70], degrees=True).as_matrix()
+    other = _in_other_world(truth, 3.0, rotation, np.array([1.0, -2.0, 0.5]))
+    other[4] = _pose(np.eye(3), np.array([9.0, 9.0, 9.0]))  # one badly placed camera
+    scale, found_rotation, translation, agreeing = hierarchical.similarity(truth, other)
+    assert scale == pytest.approx(3.0) and np.allclose(found_rotation, rotation) and 4 not in agreeing
+    assert np.allclose(translation, [1.0, -2.0, 0.5]) and len(agreeing) == 7
+    assert hierarchical.similarity({1: truth[1], 2: truth[2]}, other) is None  # too few shared
+
+
+def test_pieces_in_their_own_worlds_merge_into_one_and_strangers_stay_apart():
+    truth = _true_poses(12)
+    rng = np.random.default_rng(3)
+
+    def piece(ids, camera: int) -> hierarchical.Piece:
+        world = (rng.uniform(0.5, 2), Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3))
+        return hierarchical.Piece(_in_other_world({k: truth[k] for k in ids}, *world), {camera: np.array([camera])})
+
+    # Overlaps of two photos: too few to align by, three models.
+    assert len(hierarchical.merge_pieces([piece(range(1, 7), 1), piece(range(5, 10), 2), piece(range(8, 13), 3)])) == 3
+    # The middle one sharing 4 and 3 photos: one model, the largest piece's world, every camera's intrinsics.
+    largest = piece(range(3, 11), 2)
+    merged = hierarchical.merge_pieces([piece(range(1, 7), 1), largest, piece(range(8, 13), 3)])
+    assert len(merged) == 1 and sorted(merged[0].poses) == list(range(1, 13)) and sorted(merged[0].cameras) == [1, 2, 3]
+    assert all(np.array_equal(merged[0].poses[k], largest.poses[k]) for k in range(3, 11))  # the base stays
+    scale, rotation, translation, agreeing = hierarchical.similarity(truth, merged[0].poses)
+    assert len(agreeing) == 12
+    moved = _in_other_world(truth, scale, rotation, translation)
+    assert all(np.allclose(moved[k], merged[0].poses[k], atol=1e-9) for k in truth)
+
+
+@pytest.fixture(scope="module")
+def arc_scene(tmp_path_factory):
+    """VIEWS calibrated views on a 200-degree arc, their true poses, and the verified database of a run."""
+    rng = np.random.default_rng(8)
+    points, descriptors = scene_points(rng, 500)
+    centres = arc(VIEWS, span_deg=200)
+    views = {f"v{i:02d}.png": v for i, v in enumerate(synthetic_views(rng, points, descriptors, centres))}
+    images, out = write_scene(tmp_path_factory.mktemp("hierarchical"), views, SIFT)
+    reconstruct(images, out, ReconstructConfig(features=SIFT, camera=CALIBRATED), progress=False)
+    truth = {f"v{i:02d}.png": _pose(*look_at(c)) for i, c in enumerate(centres)}
+    return images, out / "database.db", truth
+
+
+def _map(arc_scene, tmp_path, executor, name: str) -> list:
+    images, database, _ = arc_scene
+    copy = shutil.copy(database, tmp_path / f"{name}.db")
+    options = mapper_options(OPTIONS, mapper_type="hierarchical")
+    return run_mapper(copy, images, options, progress=False, final_filter=True, executor=executor)
+
+
+def _poses(model) -> dict[str, np.ndarray]:
+    return {model.image(i).name: model.image(i).cam_from_world().matrix() for i in model.reg_image_ids()}
+
+
+def test_clusters_mapped_in_two_processes_merge_into_the_true_cameras(arc_scene, tmp_path):
+    _, database, truth = arc_scene
+    clusters = partition(*view_graph(database, 15), ClusterOptions(leaf_size=8, overlap=4))
+    assert len(clusters) >= 3
+    executor = LocalExecutor(2)
+    models = _map(arc_scene, tmp_path, executor, "two")
+    assert executor.places == ["local: 2 processes"]
+    assert len(models) == 1 and models[0].num_reg_images() == VIEWS and models[0].num_points3D() > 300
+    found = _poses(models[0])
+    scale, rotation, translation, agreeing = hierarchical.similarity(truth, found)
+    assert len(agreeing) == VIEWS
+    expected = _in_other_world(truth, scale, rotation, translation)
+    for name, pose in found.items():  # 0.2 px of keypoint noise: poses to a small fraction of a degree
+        assert np.degrees(np.arccos(np.clip((np.trace(expected[name][:, :3].T @ pose[:, :3]) - 1) / 2, -1, 1))) < 0.1
+    assert not list(tmp_path.glob("two-clusters.h5*"))  # the clusters' results go once merged
+    # One process maps the same clusters to the same model.
+    again = _poses(_map(arc_scene, tmp_path, LocalExecutor(1), "one")[0])
+    assert again.keys() == found.keys() and all(np.allclose(again[k], found[k], atol=1e-6) for k in found)
+
+
+def test_a_cluster_database_holds_its_photos_rows_only(arc_scene, tmp_path):
+    _, database, _ = arc_scene
+    target = tmp_path / "cluster.db"
+    hierarchical.copy_cluster(database, target, [2, 3, 5])
+    with contextlib.closing(sqlite3.connect(target)) as db:
+        assert [r[0] for r in db.execute("SELECT image_id FROM images ORDER BY image_id")] == [2, 3, 5]
+        assert [r[0] for r in db.execute("SELECT image_id FROM keypoints ORDER BY image_id")] == [2, 3, 5]
+        pairs = [r[0] for r in db.execute("SELECT pair_id FROM two_view_geometries ORDER BY pair_id")]
+        assert [pycolmap.pair_id_to_image_pair(p) for p in pairs] == [(2, 3), (2, 5), (3, 5)]
+        assert db.execute("SELECT COUNT(*) FROM matches").fetchone()[0] == 0
+        assert db.execute("SELECT COUNT(*) FROM frames").fetchone()[0] == 3
+
+
+def test_a_failed_mapping_resumes_from_the_clusters_it_mapped(arc_scene, tmp_path, monkeypatch):
+    mapped: list[str] = []
+    original = hierarchical.ClusterWorker.__call__
+
+    def fails_on_the_second(self, keys):
+        for key in keys:
+            mapped.append(key)
+            if len(mapped) == 2:
+                raise SekdError("the second cluster fails")
+            yield from original(self, [key])
+
+    monkeypatch.setattr(hierarchical.ClusterWorker, "__call__", fails_on_the_second)
+    with pytest.raises(SekdError, match="second cluster fails"):
+        _map(arc_scene, tmp_path, LocalExecutor(1), "resumed")
+    monkeypatch.setattr(hierarchical.ClusterWorker, "__call__",
+                        lambda self, keys: (mapped.extend(keys), original(self, keys))[1])
+    mapped.clear()
+    database = tmp_path / "resumed.db"
+    options = mapper_options(OPTIONS, mapper_type="hierarchical")
+    models = run_mapper(database, arc_scene[0], options, progress=False, executor=LocalExecutor(1))
+    clusters = partition(*view_graph(database, 15), ClusterOptions(leaf_size=8, overlap=4))
+    assert len(mapped) == len(clusters) - 1 and models[0].num_reg_images() == VIEWS
