@@ -255,6 +255,13 @@ def similarity(source: dict[int, np.ndarray], target: dict[int, np.ndarray]):
     agree &= error <= MAX_CENTER_SHARE * max(spread, 1e-9)
     if agree.sum() < MIN_SHARED:
         return None
+    # The robust estimates found the agreeing cameras; least squares over them is the precise scale and offset.
+    rotated, target = c_src[agree] @ rotation.T, c_tgt[agree]
+    rotated_mean, target_mean = rotated.mean(axis=0), target.mean(axis=0)
+    spread_src = float(((rotated - rotated_mean) ** 2).sum())
+    if spread_src > 1e-18:
+        scale = float(((rotated - rotated_mean) * (target - target_mean)).sum()) / spread_src
+        translation = target_mean - scale * rotated_mean
     return scale, rotation, translation, [shared[k] for k in np.flatnonzero(agree)]
 
 
