@@ -159,3 +159,13 @@ def test_a_failed_mapping_resumes_from_the_clusters_it_mapped(arc_scene, tmp_pat
     models = run_mapper(database, arc_scene[0], options, progress=False, executor=LocalExecutor(1))
     clusters = partition(*view_graph(database, 15), ClusterOptions(leaf_size=8, overlap=4))
     assert len(mapped) == len(clusters) - 1 and models[0].num_reg_images() == VIEWS
+
+
+def test_photos_of_a_camera_rig_are_not_cut_apart(arc_scene, tmp_path):
+    _, database, _ = arc_scene
+    assert hierarchical.can_map_clusters(database)
+    rig = shutil.copy(database, tmp_path / "rig.db")
+    with contextlib.closing(sqlite3.connect(rig)) as db:  # photos 1 and 2 taken together: one frame
+        db.execute("UPDATE frame_data SET frame_id = 1 WHERE data_id = 2")
+        db.commit()
+    assert not hierarchical.can_map_clusters(rig)  # pycolmap's hierarchical mapper keeps the frame whole

@@ -208,6 +208,30 @@ def test_match_on_ray_identical_to_local(cluster, local_run, tmp_path):
     _assert_keys_only(run.stderr, "pair")
 
 
+def test_global_descriptors_on_ray_identical_to_local(cluster, local_run, tmp_path):
+    """``sekd pairs --pairs retrieval --executor ray``: each photo's VLAD on the workers (the vocabulary in the
+    driver); the global descriptors and the pairs those of a local run."""
+    _, features, _, _ = local_run
+    copy = shutil.copy(features, tmp_path / "features.h5")
+    here = tmp_path / "here"
+    here.mkdir()
+    shutil.copy(features, here / "features.h5")
+    run = subprocess.run(_ray_cli(cluster, "pairs", str(copy), "-o", str(tmp_path / "pairs.txt"), "--pairs",
+                                  "retrieval", "--num-neighbors", "2", "--no-progress"),
+                         check=False, capture_output=True, text=True, timeout=180)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert re.search(r"Ray: 5 imgs in ", run.stderr), run.stderr[-2000:]
+    result = CliRunner().invoke(sekd, ["pairs", str(here / "features.h5"), "-o", str(here / "pairs.txt"), "--pairs",
+                                       "retrieval", "--num-neighbors", "2", "--no-progress"])
+    assert result.exit_code == 0, result.output[-2000:]
+    with h5py.File(tmp_path / "features.global.h5", "r") as a, h5py.File(here / "features.global.h5", "r") as b:
+        assert a["names"][()].tolist() == b["names"][()].tolist() and a.attrs["identity"] == b.attrs["identity"]
+        assert np.array_equal(a["vocabulary/centroids"][()], b["vocabulary/centroids"][()])
+        # The same numbers up to torch's reductions over threads (one per worker, the machine's here).
+        assert np.allclose(a["descriptors"][()].astype(np.float32), b["descriptors"][()].astype(np.float32), atol=1e-3)
+    assert (tmp_path / "pairs.txt").read_text() == (here / "pairs.txt").read_text()
+
+
 def _map_workers(ns: str) -> list[int]:
     """PIDs of the extraction actors (process title ``ray::_StageActor...``) in the namespace."""
     pids = []
@@ -871,6 +895,17 @@ def test_actor_pool_with_more_actors_than_tasks():
     assert [r["key"] for r in _pool_results(pool, pool.actors, _tasks(1, 4))] == ["img0.jpg"]
     assert pool.given == [["img0.jpg"], [], []]
     assert list(_pool_results(pool, pool.actors, [])) == []
+
+
+def test_actor_pool_gives_few_tasks_one_per_actor():
+    """Two long tasks (a mapping's clusters) on two actors: the first actor up takes one, not both."""
+    pytest.importorskip("ray", reason='ray is not installed (pip install "sekd-sfm[ray]")')
+    from sekd_sfm.execution.ray_pool import _pool_results
+
+    pool = _ScriptedPool(2, [("back", 0), ("back", 1), ("done", 1), ("done", 0)])
+    results = [r["key"] for r in _pool_results(pool, pool.actors, _tasks(2, 1))]
+    assert pool.given == [["img0.jpg"], ["img1.jpg"]] and pool.most_queued == 1
+    assert results == ["img1.jpg", "img0.jpg"]
 
 
 def test_actor_pool_gives_a_dead_workers_tasks_to_the_others_then_takes_it_back(monkeypatch):

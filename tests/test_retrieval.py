@@ -10,7 +10,7 @@ import torch
 from click.testing import CliRunner
 
 from sekd_sfm.cli.main import sekd
-from sekd_sfm.errors import SekdError
+from sekd_sfm.errors import Interrupted, SekdError
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import partstore
 from sekd_sfm.stages import retrieval
@@ -171,32 +171,39 @@ def test_resume_describes_only_new_images_and_config_change_recomputes(tmp_path,
     assert sorted(p.name for p in tmp_path.iterdir() if p.suffix != ".lock") == ["f.global.h5", "f.h5"]
 
 
-def test_killed_run_keeps_finished_chunks(tmp_path, monkeypatch):
+def test_interrupted_run_keeps_finished_images_and_its_vocabulary(tmp_path, monkeypatch):
     images, _ = scene_collection(scenes=2, per_scene=4, distractors=2)
     features = feature_file(tmp_path / "f.h5", images)
-    monkeypatch.setattr(retrieval, "CHUNK_IMAGES", 3)
+    described: list[str] = []
+    real_call = retrieval.VladWorker.__call__
 
-    def killed(*args):
-        raise KeyboardInterrupt
+    def interrupted_after_four(self, keys):
+        for key in keys:
+            if len(described) == 4:
+                raise KeyboardInterrupt  # Ctrl-C
+            described.append(key)
+            yield from real_call(self, [key])
 
-    monkeypatch.setattr(retrieval, "_merge", killed)
-    with pytest.raises(KeyboardInterrupt):
+    monkeypatch.setattr(retrieval.VladWorker, "__call__", interrupted_after_four)
+    with pytest.raises(Interrupted, match="4 more images saved"):
         compute_global_descriptors(features, SMALL, progress=False)
-    monkeypatch.undo()
     parts = tmp_path / "f.global.h5.parts"
-    assert len(list(parts.glob("*-*.npz"))) == 4  # 10 images in chunks of 3, plus the vocabulary
-    chunk = min(parts.glob("*-*.npz"))
-    chunk.write_bytes(chunk.read_bytes()[:50])  # torn: redone, not trusted
-    (parts / "foreign.npz").write_bytes(b"junk")
+    assert (parts / "vocabulary.npz").is_file() and not (tmp_path / "f.global.h5").exists()
+    monkeypatch.undo()
     calls = []
     real_vlad = retrieval.vlad
     monkeypatch.setattr(retrieval, "vlad", lambda d, v: calls.append(1) or real_vlad(d, v))
-    # The interrupted run's vocabulary is reused, so its chunks stay valid.
+    # The interrupted run's vocabulary is reused, so its images stay valid: only the other six are described.
     out = compute_global_descriptors(features, SMALL, progress=False)
-    assert len(calls) == 3
+    assert len(calls) == len(images) - 4
     assert not parts.exists()
     with h5py.File(out, "r") as f:
         assert sorted(n.decode() for n in f["names"][()]) == sorted(images)
+    # The same rows as an uninterrupted run.
+    again = compute_global_descriptors(features, SMALL, output=tmp_path / "again.h5", progress=False)
+    with h5py.File(out, "r") as a, h5py.File(again, "r") as b:
+        rows = {n.decode(): r for n, r in zip(a["names"][()], a["descriptors"][()])}
+        assert all(np.array_equal(rows[n.decode()], r) for n, r in zip(b["names"][()], b["descriptors"][()]))
 
 
 def test_make_pairs_retrieval_sequential_and_file_union(tmp_path):

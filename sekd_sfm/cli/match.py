@@ -6,6 +6,7 @@ from pathlib import Path
 import click
 
 from sekd_sfm.confs import output_names
+from sekd_sfm.execution import open_executor
 from sekd_sfm.stages.match import MATCH_MODES, match_features
 from sekd_sfm.stages.pairs import DEFAULT_NEIGHBORS, PAIR_MODES, PairsConfig, make_pairs
 
@@ -83,7 +84,9 @@ matching_options = option_group("matching", match_options)
               help="Pairs file to write. Default: pairs-MODE.txt beside FEATURES.")
 @pairing_options
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
-def pairs(features: Path, output: Path | None, pairing: OptionValues, no_progress: bool) -> None:
+@executor_options
+def pairs(features: Path, output: Path | None, pairing: OptionValues, no_progress: bool, executor: str,
+          ray_options) -> None:
     """Choose the image pairs to match among the images of a feature file.
 
     \b
@@ -108,10 +111,12 @@ def pairs(features: Path, output: Path | None, pairing: OptionValues, no_progres
       sekd pairs out/features.h5 --pairs sequential --window 5 --num-neighbors 10   # video + retrieval loop closure
       sekd pairs out/features.h5 --pairs-file mine.txt             # exactly the pairs in mine.txt
       sekd pairs out/features.h5 --pairs-file mine.txt --num-neighbors 10           # mine.txt plus retrieval
+      sekd pairs /shared/out/features.h5 --pairs retrieval --executor ray          # global descriptors on Ray
     """
     config = pairs_config(**pairing.values)
     output = output or features.with_name(f"pairs-{config.mode}.txt")
-    click.echo(str(make_pairs(features, output, config, progress=not no_progress)))
+    with open_executor(executor, ray_options) as runner:
+        click.echo(str(make_pairs(features, output, config, progress=not no_progress, executor=runner)))
 
 
 @click.command()

@@ -105,8 +105,9 @@ mapper_type_option = click.option(
     show_default=True, is_eager=True,  # eager: `--mapper help` lists the options of this type
     help="auto: incremental up to 250 photos, hierarchical above; incremental: COLMAP's mapper, one image at "
          "a time; global: GLOMAP (rotation averaging + global positioning, all cameras at once); "
-         "hierarchical: clusters of up to 125 photos mapped incrementally, merged, then one global bundle "
-         "adjustment (mapping time grows linearly with the photos).")
+         "hierarchical: clusters of up to 125 photos mapped incrementally, one per worker process (--num-threads "
+         "caps them) or Ray worker (--executor ray), merged, then one global bundle adjustment (mapping time "
+         "grows linearly with the photos).")
 refine_option = click.option(
     "--refine/--no-refine", default=True, show_default=True,
     help="Move each keypoint to where its matches' image patches agree (sub-pixel patch alignment, then one "

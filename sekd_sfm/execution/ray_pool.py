@@ -99,7 +99,8 @@ def _pool_results(ray, actors: list, tasks: list[dict[str, np.ndarray]],
                   on_worker_lost: Callable[[str], None] | None = None) -> Iterator[dict]:
     """Run ``tasks`` on ``actors`` (each called as ``actor.__call__(batch)``), yielding results as they finish.
 
-    An actor gets its first ``TASKS_IN_FLIGHT`` tasks once it is up (``__ray_ready__``
+    An actor gets its first ``TASKS_IN_FLIGHT`` tasks (one, when there are fewer than that per actor) once it is
+    up (``__ray_ready__``
     answers: an actor the cluster cannot place holds no task), then each finished task is
     replaced by the next one at the same actor, so faster actors take more tasks. A task whose
     actor died (its process killed, its machine gone) goes back to the front of the queue, in
@@ -123,6 +124,9 @@ class _ActorPool:
 
         self.ray, self.on_worker_lost, self.lost = ray, on_worker_lost, RayActorError
         self.todo = deque(tasks)
+        # Few tasks (a hierarchical mapping's clusters: minutes each) go one per actor: queued at the first actor
+        # up, the second task would wait there for the first while another actor idles.
+        self.in_flight = TASKS_IN_FLIGHT if len(tasks) >= TASKS_IN_FLIGHT * len(actors) else 1
         self.running: dict = {}  # result reference -> (actor computing it, its batch)
         self.load: dict = {}  # actor that is up -> tasks it holds
         self.starting = {actor.__ray_ready__.remote(): actor for actor in actors}  # asked whether it is up
@@ -168,8 +172,8 @@ class _ActorPool:
                                "(Ctrl-C keeps every finished item)")
 
     def _give(self, actor) -> None:
-        """Fill ``actor`` up to ``TASKS_IN_FLIGHT`` tasks from the queue."""
-        while self.todo and self.load[actor] < TASKS_IN_FLIGHT:
+        """Fill ``actor`` up to its tasks in flight (``TASKS_IN_FLIGHT``, or 1 for a few tasks) from the queue."""
+        while self.todo and self.load[actor] < self.in_flight:
             batch = self.todo.popleft()
             self.running[actor.__call__.remote(batch)] = (actor, batch)
             self.load[actor] += 1

@@ -63,10 +63,10 @@ class PairResults:
         done = self.stored()
         return [[key] for key in keys if key not in done]
 
-    def compute(self, stage, executor, progress: bool = True) -> dict[str, dict[str, np.ndarray]]:
-        """Run ``stage`` (its output this file) on ``executor``; every pair's arrays, by key. A pair fails only
-        with its whole run (its worker raises): the finished ones stay for the next run, and a file with none
-        is removed."""
+    def run(self, stage, executor, progress: bool = True) -> Path:
+        """Run ``stage`` (its output this file) on ``executor``; returns this file, every item in it. An item
+        fails only with its whole run (its worker raises): the finished ones stay for the next run, and a file
+        with none is removed."""
         def on_error(key: str, error: str) -> None:
             raise SekdError(error)
 
@@ -76,6 +76,11 @@ class PairResults:
             if not self.stored():
                 self.remove()
             raise
+        return self.path
+
+    def compute(self, stage, executor, progress: bool = True) -> dict[str, dict[str, np.ndarray]]:
+        """``run``, then every item's arrays, by key (for results that fit in memory)."""
+        self.run(stage, executor, progress)
         with h5py.File(self.path, "r") as f:
             return {str(group.attrs["pair"]): {n: d[()] for n, d in group.items()} for group in f.values()}
 

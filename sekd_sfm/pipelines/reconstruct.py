@@ -314,7 +314,7 @@ def pairs(run: Run, s: Reconstruction) -> Reconstruction:
     path = run.out / record.PAIRS
     if s.matches is None:
         s.pairs = make_pairs(s.features, path, s.config.pairs, progress=run.progress,
-                             gps=s.gps.neighbors(s.config.gps))
+                             gps=s.gps.neighbors(s.config.gps), executor=run.executor)
         if s.panoramas:  # views of one panorama share no pixel
             s.pairs = write_pairs([p for p in read_pairs(s.pairs) if not same_panorama(*p)], path)
     else:

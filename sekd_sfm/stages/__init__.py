@@ -9,7 +9,8 @@
     chance      database.db -> database.db            (verified pairs no better than chance dropped)
     viewgraph   database.db -> database.db            (verified pairs that disagree with the view graph dropped)
     mapping     database.db -> models                 (mapper_worker: the mapper's child process;
-                                                        principal_point: the principal-point test)
+                                                        principal_point: the principal-point test;
+                                                        hierarchical: clusters (partition) on the executor)
     modelcheck  models + database.db -> record         (verified pairs a model contradicts: folded models)
     georef      models -> models in a local ENU frame  (EXIF GPS)
     export      model -> text, PLY, HTML, nerfstudio   (export_nerfstudio)

@@ -49,11 +49,17 @@ MAX_CENTER_SHARE = 0.1
 
 # ----------------------------------------------------------------------------- the clusters' tasks
 
-def has_multi_camera_frames(database) -> bool:
-    """Whether some frame of ``database`` holds several photos (a camera rig): its clusters would split frames."""
+def can_map_clusters(database) -> bool:
+    """Whether ``database``'s clusters can be mapped on the executor: COLMAP 4's frames (pycolmap and the file),
+    each holding one photo. A frame of several photos (a camera rig) would be split between clusters: rigs keep
+    ``pycolmap.hierarchical_mapping``, which clusters frames."""
+    if not hasattr(require_pycolmap().Reconstruction, "register_frame"):
+        return False
     with read_only_database(database) as db:
+        if db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'frame_data'").fetchone() is None:
+            return False
         row = db.execute("SELECT 1 FROM frame_data GROUP BY frame_id HAVING COUNT(*) > 1 LIMIT 1").fetchone()
-    return row is not None
+    return row is None
 
 
 def copy_cluster(source: Path, target: Path, image_ids: list[int]) -> None:

@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from ..errors import Interrupted, SekdError
 from .colmap import open_database, require_pycolmap, set_options
-from .hierarchical import has_multi_camera_frames, map_clusters
+from .hierarchical import can_map_clusters, map_clusters
 
 MAIN_MODEL = "model"
 MODELS = "models"
@@ -207,7 +207,7 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
                "seed": _seed(options), "log_prefix": str(log_prefix) if log_prefix else None,
                "input_path": str(input_model) if input_model else "", "final_filter": final_filter}
     details = {} if details is None else details
-    if kind == "hierarchical" and not has_multi_camera_frames(database):
+    if kind == "hierarchical" and can_map_clusters(database):
         try:
             details["clusters"] = {}
             request["clusters"] = map_clusters(database, image_dir, options, executor, log_prefix=log_prefix,

@@ -214,9 +214,10 @@ def write_pairs(pairs: list[Pair], path: str | Path) -> Path:
 
 
 def retrieval_pairs(features: Path, names: list[str], config: PairsConfig, num_neighbors: int,
-                    progress: bool = True) -> list[Pair]:
-    """Each of ``names`` with its ``num_neighbors`` most similar images (global descriptors beside ``features``)."""
-    global_file = compute_global_descriptors(features, config.retrieval, progress=progress)
+                    progress: bool = True, executor="local") -> list[Pair]:
+    """Each of ``names`` with its ``num_neighbors`` most similar images (global descriptors beside ``features``,
+    computed on ``executor``)."""
+    global_file = compute_global_descriptors(features, config.retrieval, progress=progress, executor=executor)
     neighbours = nearest_neighbors(global_file, names, num_neighbors)
     return unique_pairs((a, b) for a in sorted(names) for b in neighbours[a])
 
@@ -234,7 +235,7 @@ def resolve_mode(config: PairsConfig, num_images: int) -> tuple[str, int]:
 
 
 def generate_pairs(names: list[str], config: PairsConfig, features: Path | None = None,
-                   progress: bool = True) -> list[Pair]:
+                   progress: bool = True, executor="local") -> list[Pair]:
     """The pairs ``config`` asks for among ``names`` (a from-file list is read, not filtered).
 
     Retrieval (mode ``retrieval``, or ``num_neighbors`` > 0 with ``sequential``/``from-file``)
@@ -254,7 +255,7 @@ def generate_pairs(names: list[str], config: PairsConfig, features: Path | None 
     if neighbours and len(names) > 1:
         if features is None:
             raise SekdError("retrieval pairs need the feature file")
-        pairs += retrieval_pairs(features, names, config, neighbours, progress)
+        pairs += retrieval_pairs(features, names, config, neighbours, progress, executor)
     return unique_pairs(pairs)
 
 
@@ -267,18 +268,19 @@ def describe_mode(config: PairsConfig, num_images: int) -> str:
 
 
 def make_pairs(features: str | Path, output: str | Path, config: PairsConfig | None = None, *,
-               progress: bool = True, gps: GpsNeighbors | None = None) -> Path:
+               progress: bool = True, gps: GpsNeighbors | None = None, executor="local") -> Path:
     """Write the pairs among the images of the feature file ``features`` to ``output``. Returns ``output``.
 
     Images whose names a pairs file cannot hold are left out with one warning. An existing
     ``output`` with exactly these pairs is left untouched (reused). ``gps``: GPS neighbour
     pairs added after those of ``config`` (``gps_pairs``); without it the pairs are ``config``'s only.
+    ``executor``: where retrieval's global descriptors are computed (a name or an open ``execution.Executor``).
     """
     config = config or PairsConfig()
     features, output = Path(features), Path(output)
     ff.read_attrs(features)
     names, bad = split_writable(ff.list_keys(features))
-    pairs = generate_pairs(names, config, features, progress)
+    pairs = generate_pairs(names, config, features, progress, executor)
     if gps is not None:
         pairs = unique_pairs(pairs + gps_pairs(names, gps.positions, gps.k, gps.radius_m))
     bad.update({n: r for pair in pairs for n in pair if (r := unwritable_reason(n))})  # from a --pairs-file

@@ -19,17 +19,21 @@ Global descriptors are stored beside the features in ``<features>.global.h5``::
     names       M strings           image keys
     descriptors M x (k * d) float16 unit L2 (cosine similarity = dot product)
 
+The vocabulary is learned in the driver (a bounded sample: its cost does not grow with the
+collection); each image's VLAD is one item of an ``execution.Stage`` (``VladWorker``), computed in
+this process or on Ray workers (``executor``).
+
 Resumable: images already described are not recomputed; a different feature file or
 retrieval configuration makes a new vocabulary and recomputes everything. Work in progress
-is saved in ``<global>.parts/`` chunk by chunk, and the file is only ever replaced whole
-(temporary name with the PID, fsync, rename), so a kill at any moment loses at most one chunk.
+is saved in ``<global>.parts/`` (the vocabulary, and each described image through the crash-safe
+part store), and the file is only ever replaced whole (temporary name with the PID, fsync, rename),
+so a kill at any moment loses at most a few seconds of work.
 """
 from __future__ import annotations
 
 import hashlib
 import json
 import logging
-import os
 import shutil
 import time
 from dataclasses import asdict, dataclass
@@ -38,16 +42,20 @@ from pathlib import Path
 import h5py
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from ..errors import SekdError
+from ..execution import Executor, Stage, using
 from ..files import features as ff
 from ..files.atomic import atomic_output
 from ..files.locking import exclusive_lock
+from ..files.pairresults import PairResults, write_pair_group
 
 logger = logging.getLogger("sekd")
 FORMAT = "sekd-global"
-CHUNK_IMAGES = 256  # images per saved chunk: a kill loses at most this much work
+#: The format of the per-image results of a run in progress (``<global>.parts/descriptors.h5``).
+PARTS_FORMAT = "sekd-global-parts"
+#: Images per Ray task: an image's VLAD takes ~20 ms, so a task of 64 outweighs its ~5 ms of overhead.
+IMAGES_PER_TASK = 64
 
 
 @dataclass
@@ -224,29 +232,6 @@ def _save_vocabulary(parts: Path, identity: str, vocab: Vocabulary) -> None:
     _savez_durable(parts / "vocabulary.npz", identity=np.array(identity), **asdict(vocab))
 
 
-def _load_chunks(parts: Path, vocab_id: str) -> list[Path]:
-    """Chunk files made with this vocabulary; others (another vocabulary, torn files) are deleted."""
-    good = []
-    for file in sorted(parts.glob("*.npz")) if parts.is_dir() else []:
-        if file.name == "vocabulary.npz":
-            continue
-        try:
-            with np.load(file) as data:
-                ok = str(data["vocab_id"]) == vocab_id and len(data["names"]) == len(data["descriptors"])
-        except Exception:  # noqa: BLE001 - a torn or foreign file is redone, never trusted
-            ok = False
-        if ok:
-            good.append(file)
-        else:
-            file.unlink(missing_ok=True)
-    return good
-
-
-def _save_chunk(parts: Path, vocab_id: str, names: list[str], rows: list[np.ndarray]) -> None:
-    _savez_durable(parts / f"{time.time_ns()}-{os.getpid()}.npz", vocab_id=np.array(vocab_id),
-                   names=np.array(names), descriptors=np.stack(rows).astype(np.float16))
-
-
 def _savez_durable(target: Path, **arrays: np.ndarray) -> None:
     """``np.savez`` onto ``target`` atomically (the temporary name does not end in ``.npz``: never loaded as a chunk)."""
     with atomic_output(target) as tmp, open(tmp, "wb") as f:
@@ -254,10 +239,11 @@ def _savez_durable(target: Path, **arrays: np.ndarray) -> None:
 
 
 def compute_global_descriptors(features: str | Path, config: RetrievalConfig | None = None, output: str | Path | None = None,
-                               progress: bool = True) -> Path:
+                               progress: bool = True, executor: str | Executor = "local") -> Path:
     """Describe every image of ``features`` by one global descriptor; write ``output`` (default ``global_path``).
 
-    Returns ``output``. Images already in ``output`` (same feature file, same config) are kept.
+    Returns ``output``. Images already in ``output`` (same feature file, same config) are kept. ``executor``: where
+    the images' VLADs are computed (a name or an open ``execution.Executor``); the vocabulary is learned here.
     """
     config = config or RetrievalConfig()
     features = Path(features)
@@ -265,15 +251,28 @@ def compute_global_descriptors(features: str | Path, config: RetrievalConfig | N
     identity, names = _identity(features, config), ff.list_keys(features)
     with exclusive_lock(output, what="global descriptors file"):
         try:
-            _describe_all(features, output, config, identity, names, progress)
+            _describe_all(features, output, config, identity, names, progress, executor)
         except OSError as exc:
             raise SekdError(f"{output}: global descriptors failed ({exc}); fix the cause (disk space, permissions) "
                             "and rerun: images already described are kept") from exc
     return output
 
 
+class VladWorker:
+    """Global descriptors' per-image work (an ``execution.Stage`` worker): each image's VLAD (``vlad``, stored as
+    float16) from its local descriptors in ``features``."""
+
+    def __init__(self, features: str, vocabulary: Vocabulary):
+        self.features, self.vocabulary = features, vocabulary
+
+    def __call__(self, keys: list[str]):
+        for name in keys:
+            row = vlad(ff.read_features(self.features, name)["descriptors"], self.vocabulary)
+            yield name, {"vlad": row.astype(np.float16)}, ""
+
+
 def _describe_all(features: Path, output: Path, config: RetrievalConfig, identity: str, names: list[str],
-                  progress: bool) -> None:
+                  progress: bool, executor: str | Executor = "local") -> None:
     vocab, stored = _read_existing(output, identity)
     parts = output.with_name(output.name + ".parts")
     if vocab is None:
@@ -284,37 +283,25 @@ def _describe_all(features: Path, output: Path, config: RetrievalConfig, identit
         logger.info("%s: vocabulary of %d words learned in %.1f s", output, len(vocab.centroids),
                     time.perf_counter() - started)
         _save_vocabulary(parts, identity, vocab)
-    vocab_id = _vocab_id(vocab)
-    chunks = _load_chunks(parts, vocab_id)
     done = set(stored)
-    for chunk in chunks:
-        with np.load(chunk) as data:
-            done.update(str(n) for n in data["names"])
     todo = [n for n in names if n not in done]
-    pending_names, pending_rows = [], []
-    for name in tqdm(todo, desc="global descriptors", unit="image", disable=not progress or not todo):
-        pending_names.append(name)
-        pending_rows.append(vlad(ff.read_features(features, name)["descriptors"], vocab))
-        if len(pending_names) == CHUNK_IMAGES:
-            _save_chunk(parts, vocab_id, pending_names, pending_rows)
-            pending_names, pending_rows = [], []
-    if pending_names:
-        _save_chunk(parts, vocab_id, pending_names, pending_rows)
     if todo or set(stored) != set(names) or not output.is_file():
-        _merge(output, identity, vocab, stored, _load_chunks(parts, vocab_id), set(names))
+        parts.mkdir(parents=True, exist_ok=True)
+        results = PairResults(parts / "descriptors.h5", PARTS_FORMAT, _vocab_id(vocab), max_items=256)
+        stage = Stage(name="global descriptors", worker=VladWorker, args=(str(features.resolve()), vocab),
+                      batches=results.missing(todo), output=results.path, write_group=write_pair_group,
+                      unit="img", items="images", verb="described", joinable=True, per_task=IMAGES_PER_TASK)
+        with using(executor) as runner:
+            results.run(stage, runner, progress)
+        _merge(output, identity, vocab, stored, results.path, set(names))
     shutil.rmtree(parts, ignore_errors=True)  # everything in it is now in the output
     logger.info("%s: %d global descriptors (%d new)", output, len(names), len(todo))
 
 
-def _merge(output: Path, identity: str, vocab: Vocabulary, stored: list[str], chunks: list[Path], keep: set[str]) -> None:
-    """Write the global file: rows of the old file still wanted, then the chunks; row by row-block, bounded memory."""
+def _merge(output: Path, identity: str, vocab: Vocabulary, stored: list[str], described: Path, keep: set[str]) -> None:
+    """Write the global file: rows of the old file still wanted, then the images ``described`` (the stage's results
+    file); block by block, bounded memory."""
     old_rows = [i for i, n in enumerate(stored) if n in keep]
-    sources: list[tuple[list[str], object]] = [([stored[i] for i in old_rows], None)] if old_rows else []
-    for chunk in chunks:
-        with np.load(chunk) as data:
-            names = [str(n) for n in data["names"]]
-        sources.append((names, chunk))
-    seen: set[str] = set()
 
     def write(f: h5py.File) -> None:
         f.attrs["format"], f.attrs["identity"] = FORMAT, identity
@@ -322,19 +309,29 @@ def _merge(output: Path, identity: str, vocab: Vocabulary, stored: list[str], ch
             f.create_dataset(f"vocabulary/{key}", data=value)
         dim = vocab.centroids.size
         rows = f.create_dataset("descriptors", (0, dim), np.float16, maxshape=(None, dim), chunks=(64, dim))
-        all_names = []
-        for names, source in sources:
-            if source is None:
-                with h5py.File(output, "r") as old:
-                    block = old["descriptors"][old_rows]
-            else:
-                with np.load(source) as data:
-                    block = data["descriptors"]
-            take = [i for i, n in enumerate(names) if n in keep and n not in seen]
-            seen.update(names[i] for i in take)
-            rows.resize(len(all_names) + len(take), axis=0)
-            rows[len(all_names):] = block[take]
-            all_names += [names[i] for i in take]
+        all_names = [stored[i] for i in old_rows]
+        if old_rows:
+            with h5py.File(output, "r") as old:
+                rows.resize(len(old_rows), axis=0)
+                rows[:] = old["descriptors"][old_rows]
+        seen, block = set(all_names), []
+
+        def flush() -> None:
+            rows.resize(rows.shape[0] + len(block), axis=0)
+            rows[rows.shape[0] - len(block):] = np.stack(block)
+            block.clear()
+
+        with h5py.File(described, "r") as new:
+            for group in new.values():
+                name = str(group.attrs["pair"])
+                if name in keep and name not in seen:
+                    block.append(group["vlad"][()])
+                    all_names.append(name)
+                    seen.add(name)
+                    if len(block) == 256:
+                        flush()
+        if block:
+            flush()
         f.create_dataset("names", data=np.array(all_names, dtype=h5py.string_dtype()))
 
     _write_atomic(output, write)
