@@ -7,9 +7,9 @@
    returns the cameras' poses and intrinsics: a few kilobytes. The results are saved cluster by cluster
    (``<database stem>-clusters.h5``): a killed run resumes from the clusters it finished.
 3. The mapper's child process (``mapper_worker``) merges them (``merge_pieces``): the largest model first, then
-   the one sharing most photos with what is merged, moved by the similarity its shared cameras give (rotations
-   and centres, robust to a few badly placed ones); the points are triangulated again from the whole database
-   with the merged poses held, then one global bundle adjustment fixes the seams.
+   the one sharing most photos with what is merged, moved by the similarity its shared cameras give (``similarity``:
+   robust to a few badly placed cameras, then least squares over the others); the points are triangulated again
+   from the whole database with the merged poses held, then one global bundle adjustment fixes the seams.
 
 The same graph gives the same clusters and the same merge, wherever the clusters ran. Photos in multi-camera rigs
 keep pycolmap's own hierarchical mapper (its clusters know the rigs' frames).
@@ -37,7 +37,7 @@ from .partition import PAIR_BASE, ClusterOptions, partition, view_graph
 logger = logging.getLogger("sekd")
 
 FORMAT = "sekd-cluster-models"
-#: The tables a cluster's database copies whole (a few rows per photo), and those it filters by its photos.
+#: The tables a cluster's database copies whole (a few rows per camera); the others keep its photos' rows only.
 WHOLE_TABLES = ("rigs", "rig_sensors", "cameras")
 #: Cameras shared with what is merged a model needs to join it (fewer: it stays a model of its own).
 MIN_SHARED = 3
