@@ -1,5 +1,6 @@
-"""Hierarchical mapping on the executor (sekd_sfm.stages.hierarchical): clusters mapped in worker processes and
-merged into the true cameras; the same model from one process or two; a killed run resumes from its clusters."""
+"""Hierarchical mapping on the executor (sekd_sfm.stages.hierarchical, and the merge: sekd_sfm.stages.cluster_merge):
+clusters mapped in worker processes and merged into the true cameras; the same model from one process or two; a
+killed run resumes from its clusters."""
 from __future__ import annotations
 
 import contextlib
@@ -22,7 +23,7 @@ from test_reconstruct import (
 from sekd_sfm.errors import SekdError
 from sekd_sfm.execution import LocalExecutor
 from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
-from sekd_sfm.stages import hierarchical
+from sekd_sfm.stages import cluster_merge, hierarchical
 from sekd_sfm.stages.colmap import require_pycolmap
 from sekd_sfm.stages.mapping import mapper_options, run_mapper
 from sekd_sfm.stages.partition import ClusterOptions, partition, view_graph
@@ -45,7 +46,7 @@ def _true_poses(n: int = 12) -> dict[int, np.ndarray]:
 
 def _in_other_world(poses: dict[int, np.ndarray], scale: float, rotation: np.ndarray, translation: np.ndarray):
     """The same cameras in a world ``x' = scale * rotation @ x + translation``."""
-    return {k: hierarchical.moved(p, scale, rotation, translation) for k, p in poses.items()}
+    return {k: cluster_merge.moved(p, scale, rotation, translation) for k, p in poses.items()}
 
 
 def test_the_similarity_of_two_worlds_from_shared_cameras_on_a_line():
@@ -53,28 +54,28 @@ def test_the_similarity_of_two_worlds_from_shared_cameras_on_a_line():
     rotation = Rotation.from_euler("xyz", [20, -35, 70], degrees=True).as_matrix()
     other = _in_other_world(truth, 3.0, rotation, np.array([1.0, -2.0, 0.5]))
     other[4] = _pose(np.eye(3), np.array([9.0, 9.0, 9.0]))  # one badly placed camera
-    scale, found_rotation, translation, agreeing = hierarchical.similarity(truth, other)
+    scale, found_rotation, translation, agreeing = cluster_merge.similarity(truth, other)
     assert scale == pytest.approx(3.0) and np.allclose(found_rotation, rotation) and 4 not in agreeing
     assert np.allclose(translation, [1.0, -2.0, 0.5]) and len(agreeing) == 7
-    assert hierarchical.similarity({1: truth[1], 2: truth[2]}, other) is None  # too few shared
+    assert cluster_merge.similarity({1: truth[1], 2: truth[2]}, other) is None  # too few shared
 
 
 def test_pieces_in_their_own_worlds_merge_into_one_and_strangers_stay_apart():
     truth = _true_poses(12)
     rng = np.random.default_rng(3)
 
-    def piece(ids, camera: int) -> hierarchical.Piece:
+    def piece(ids, camera: int) -> cluster_merge.Piece:
         world = (rng.uniform(0.5, 2), Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3))
-        return hierarchical.Piece(_in_other_world({k: truth[k] for k in ids}, *world), {camera: np.array([camera])})
+        return cluster_merge.Piece(_in_other_world({k: truth[k] for k in ids}, *world), {camera: np.array([camera])})
 
     # Overlaps of two photos: too few to align by, three models.
-    assert len(hierarchical.merge_pieces([piece(range(1, 7), 1), piece(range(5, 10), 2), piece(range(8, 13), 3)])) == 3
+    assert len(cluster_merge.merge_pieces([piece(range(1, 7), 1), piece(range(5, 10), 2), piece(range(8, 13), 3)])) == 3
     # The middle one sharing 4 and 3 photos: one model, the largest piece's world, every camera's intrinsics.
     largest = piece(range(3, 11), 2)
-    merged = hierarchical.merge_pieces([piece(range(1, 7), 1), largest, piece(range(8, 13), 3)])
+    merged = cluster_merge.merge_pieces([piece(range(1, 7), 1), largest, piece(range(8, 13), 3)])
     assert len(merged) == 1 and sorted(merged[0].poses) == list(range(1, 13)) and sorted(merged[0].cameras) == [1, 2, 3]
     assert all(np.array_equal(merged[0].poses[k], largest.poses[k]) for k in range(3, 11))  # the base stays
-    scale, rotation, translation, agreeing = hierarchical.similarity(truth, merged[0].poses)
+    scale, rotation, translation, agreeing = cluster_merge.similarity(truth, merged[0].poses)
     assert len(agreeing) == 12
     moved = _in_other_world(truth, scale, rotation, translation)
     assert all(np.allclose(moved[k], merged[0].poses[k], atol=1e-9) for k in truth)
@@ -113,7 +114,7 @@ def test_clusters_mapped_in_two_processes_merge_into_the_true_cameras(arc_scene,
     assert executor.places == ["local: 2 processes"]
     assert len(models) == 1 and models[0].num_reg_images() == VIEWS and models[0].num_points3D() > 300
     found = _poses(models[0])
-    scale, rotation, translation, agreeing = hierarchical.similarity(truth, found)
+    scale, rotation, translation, agreeing = cluster_merge.similarity(truth, found)
     assert len(agreeing) == VIEWS
     expected = _in_other_world(truth, scale, rotation, translation)
     for name, pose in found.items():  # 0.2 px of keypoint noise: poses to a small fraction of a degree

@@ -1,7 +1,9 @@
-"""The results of a per-pair stage in progress (refinement's alignments, verification's geometries).
+"""The results of a per-item stage in progress whose output is not a features or matches file: refinement's
+alignments and verification's geometries (per pair), the hierarchical mapper's clusters, retrieval's
+global descriptors (per image).
 
-One HDF5 file beside the stage's real output, one group per pair under a digest of its key (image
-names may hold '/'; the key is kept as the attribute ``pair``), and the file's ``format`` and
+One HDF5 file beside the stage's real output, one group per item under a digest of its key (image
+names may hold '/'; the key is kept as the attribute ``pair``, whatever the item), and the file's ``format`` and
 ``signature`` (what the results were computed from). An executor fills it through the crash-safe
 part store; a killed run's pairs are reused by the next run with the same signature, and the file
 goes once the stage's output holds what it was for::

@@ -10,7 +10,8 @@
     viewgraph   database.db -> database.db            (verified pairs that disagree with the view graph dropped)
     mapping     database.db -> models                 (mapper_worker: the mapper's child process;
                                                         principal_point: the principal-point test;
-                                                        hierarchical: clusters (partition) on the executor)
+                                                        hierarchical: clusters (partition) on the executor,
+                                                        merged in the child (cluster_merge))
     modelcheck  models + database.db -> record         (verified pairs a model contradicts: folded models)
     georef      models -> models in a local ENU frame  (EXIF GPS)
     export      model -> text, PLY, HTML, nerfstudio   (export_nerfstudio)

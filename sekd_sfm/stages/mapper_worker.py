@@ -198,7 +198,7 @@ def merge_clusters(request: dict, options, pycolmap) -> dict:
     """The models of the clusters mapped on the executor (``request["clusters"]``: their ``model_arrays``),
     merged, triangulated again from the database, adjusted as a whole, and kept when they hold ``min_model_size``
     photos. ``request["merge"]`` gets the record: pieces, models, seconds of each step."""
-    from .hierarchical import assemble, merge_pieces, pieces_of
+    from .cluster_merge import assemble, merge_pieces, pieces_of
 
     inner = options.incremental_options
     start = time.perf_counter()
