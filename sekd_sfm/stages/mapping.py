@@ -3,9 +3,10 @@
 * ``incremental`` (``pycolmap.incremental_mapping``): COLMAP's classic mapper, one image at a time;
 * ``global`` (``pycolmap.global_mapping``, GLOMAP): rotation averaging + global positioning,
   then bundle adjustment: all cameras at once;
-* ``hierarchical`` (``pycolmap.hierarchical_mapping``): the view graph cut into overlapping
-  clusters of at most HIERARCHICAL_LEAF_IMAGES photos, each mapped incrementally, then
-  merged; then one global bundle adjustment of each merged model (``mapper_worker``);
+* ``hierarchical``: the view graph cut into overlapping clusters of at most HIERARCHICAL_LEAF_IMAGES
+  photos (``partition``), each mapped incrementally as a task of the run's executor (``hierarchical``:
+  worker processes or Ray workers), merged in the child (``cluster_merge``), then one global bundle
+  adjustment; photos in camera rigs by ``pycolmap.hierarchical_mapping`` and the same adjustment;
 * ``auto`` (the default): incremental up to AUTO_HIERARCHICAL_ABOVE photos, hierarchical above.
 
 The mapper runs in a child process (``mapper_worker``) so that Ctrl-C stops it at once.
