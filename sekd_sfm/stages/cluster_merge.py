@@ -1,6 +1,7 @@
 """The hierarchical mapper's merge (``hierarchical``, step 3), in the mapper's child process (``mapper_worker``):
 the clusters' models joined by similarities from the cameras they share, then the points triangulated again
-from the whole database with the merged poses held. NumPy and the pycolmap module passed in only, as the child.
+from the whole database with the merged poses held. NumPy, pycolmap (the module passed in) and ``colmap``'s
+database opener only: no torch, as the child.
 """
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from .colmap import open_database
 
 #: Cameras shared with what is merged a model needs to join it (fewer: it stays a model of its own).
 MIN_SHARED = 3
@@ -60,9 +63,10 @@ def similarity(source: dict[int, np.ndarray], target: dict[int, np.ndarray]):
     """``(scale, R, t)`` taking ``source``'s world to ``target``'s (``x_t = scale * R @ x_s + t``) from the photos
     both hold, and the ids that agree with it; None with fewer than MIN_SHARED agreeing.
 
-    Rotation: the candidate (one per shared camera) most others agree with, averaged over those; scale: the median
-    ratio of distances between shared centres; translation: the median offset. Orientations make it well posed
-    even where the shared centres lie on a line (a walk's clusters meet along the path)."""
+    Rotation: the candidate (one per shared camera) most others agree with, averaged over those; scale and offset
+    first robustly (the median ratio of distances between shared centres, the median offset) to drop the centres
+    that disagree, then by least squares over the others. Orientations make it well posed even where the shared
+    centres lie on a line (a walk's clusters meet along the path)."""
     shared = sorted(set(source) & set(target))
     if len(shared) < MIN_SHARED:
         return None
@@ -114,19 +118,9 @@ def merge_pieces(pieces: list[Piece]) -> list[Piece]:
     while left:
         merged = Piece(dict(left[0].poses), dict(left[0].cameras))
         left = left[1:]
-        while left:
-            order = sorted(range(len(left)), key=lambda k: -len(set(left[k].poses) & set(merged.poses)))
-            joined = None
-            for k in order:
-                if len(set(left[k].poses) & set(merged.poses)) < MIN_SHARED:
-                    break
-                found = similarity(left[k].poses, merged.poses)
-                if found is not None:
-                    joined = k
-                    break
-            if joined is None:
-                break
-            piece, (scale, rotation, translation, _) = left.pop(joined), found
+        while (joined := _next_to_join(left, merged)) is not None:
+            k, (scale, rotation, translation, _) = joined
+            piece = left.pop(k)
             for image_id, pose in piece.poses.items():
                 merged.poses.setdefault(image_id, moved(pose, scale, rotation, translation))
             for camera_id, params in piece.cameras.items():
@@ -135,12 +129,24 @@ def merge_pieces(pieces: list[Piece]) -> list[Piece]:
     return sorted(models, key=lambda p: -len(p.poses))
 
 
+def _next_to_join(left: list[Piece], merged: Piece):
+    """``(index in left, similarity)`` of the piece sharing most photos with ``merged`` that aligns with it (at
+    least MIN_SHARED shared), or None."""
+    shared = [len(merged.poses.keys() & piece.poses.keys()) for piece in left]
+    for k in sorted(range(len(left)), key=lambda k: -shared[k]):
+        if shared[k] < MIN_SHARED:
+            return None
+        found = similarity(left[k].poses, merged.poses)
+        if found is not None:
+            return k, found
+    return None
+
+
 def assemble(piece: Piece, database: str, image_dir: str, options, scratch: Path, pycolmap):
     """A Reconstruction of ``piece``'s photos at its poses and intrinsics, its points triangulated from
     ``database`` with the poses held (COLMAP's point triangulator, ``options``: IncrementalPipelineOptions)."""
     cache_options = pycolmap.DatabaseCacheOptions()
-    db = pycolmap.Database.open(database) if hasattr(pycolmap.Database, "open") else pycolmap.Database(database)
-    with db:
+    with open_database(database) as db:
         names = {image.name for image in db.read_all_images() if image.image_id in piece.poses}
         cache_options.image_names = names
         cache = pycolmap.DatabaseCache.create(db, cache_options)

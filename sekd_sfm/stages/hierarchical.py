@@ -30,13 +30,16 @@ import numpy as np
 from ..execution import Executor, Stage, using
 from ..files.pairresults import PairResults, write_pair_group
 from .colmap import read_only_database, require_pycolmap
-from .partition import PAIR_BASE, ClusterOptions, partition, view_graph
+from .mapper_worker import quiet_colmap_log
+from .partition import ClusterOptions, partition, view_graph
 
 logger = logging.getLogger("sekd")
 
 FORMAT = "sekd-cluster-models"
 #: The tables a cluster's database copies whole (a few rows per camera); the others keep its photos' rows only.
 WHOLE_TABLES = ("rigs", "rig_sensors", "cameras")
+#: Pair id of COLMAP's database: ``image_id1 * PAIR_BASE + image_id2`` with ``image_id1 < image_id2``.
+PAIR_BASE = 2147483647
 
 
 # ----------------------------------------------------------------------------- the clusters' tasks
@@ -110,8 +113,6 @@ class ClusterWorker:
 
     def __init__(self, database: str, image_dir: str, options, clusters: dict[str, list[int]],
                  log_prefix: str | None = None):
-        from .mapper_worker import quiet_colmap_log
-
         self.pycolmap = require_pycolmap()
         self.database, self.image_dir, self.options, self.clusters = database, image_dir, options, clusters
         quiet_colmap_log(log_prefix, self.pycolmap)

@@ -12,7 +12,7 @@ found; ``image``: an image was registered), writes each reconstruction found to
 ``<output>/<k>`` (largest first, COLMAP binary) and, with ``final_filter`` in the request, the record
 of each one's final filtered adjustment to ``<output>/<k>.json``, and exits 0; on an exception it prints
 the traceback to stderr and exits 1. Only pycolmap, numpy, the standard library and the merge of the
-hierarchical mapper's clusters (``cluster_merge``, NumPy alone) are imported here, so the child starts in well
+hierarchical mapper's clusters (``cluster_merge``: NumPy and pycolmap) are imported here, so the child starts in well
 under a second (no torch).
 """
 from __future__ import annotations

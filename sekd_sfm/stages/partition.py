@@ -16,12 +16,8 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import eigsh
 
-from .colmap import read_only_database
+from .colmap import open_database, require_pycolmap
 
-#: COLMAP's two-view configs of a pair that did not verify (UNDEFINED, DEGENERATE).
-FAILED_CONFIGS = (0, 1)
-#: Pair id of COLMAP's database: ``image_id1 * PAIR_BASE + image_id2`` with ``image_id1 < image_id2``.
-PAIR_BASE = 2147483647
 #: A cut leaves at least this share of the photos on each side: clusters of similar sizes map in similar times.
 MIN_SIDE = 0.3
 #: A leaf of fewer photos (or of fewer than MIN_SIDE of the leaf size) joins its most strongly linked neighbour
@@ -44,14 +40,16 @@ class ClusterOptions:
 
 def view_graph(database, min_num_matches: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The verified pairs of ``database`` with at least ``min_num_matches`` inliers: image ids ``(N,)`` int64 of
-    every photo, and the edges as ``pairs (E, 2)`` image ids and ``weights (E,)`` inlier counts."""
-    with read_only_database(database) as db:
-        ids = np.array([row[0] for row in db.execute("SELECT image_id FROM images ORDER BY image_id")], np.int64)
-        rows = db.execute("SELECT pair_id, rows FROM two_view_geometries WHERE rows >= ? AND config NOT IN (?, ?)",
-                          (max(1, int(min_num_matches)), *FAILED_CONFIGS)).fetchall()
-    pair_ids = np.array([r[0] for r in rows], np.int64)
-    pairs = np.stack([pair_ids // PAIR_BASE, pair_ids % PAIR_BASE], axis=1) if rows else np.zeros((0, 2), np.int64)
-    return ids, pairs, np.array([r[1] for r in rows], np.float64)
+    every photo, and the edges as ``pairs (E, 2)`` image ids and ``weights (E,)`` inlier counts (a pair that did
+    not verify has none)."""
+    pycolmap = require_pycolmap()
+    with open_database(database) as db:
+        ids = np.array(sorted(image.image_id for image in db.read_all_images()), np.int64)
+        pair_ids, counts = db.read_two_view_geometry_num_inliers()
+    found = [(pycolmap.pair_id_to_image_pair(pair_id), n) for pair_id, n in zip(pair_ids, counts)
+             if n >= max(1, int(min_num_matches))]
+    pairs = np.array([pair for pair, _ in found], np.int64).reshape(-1, 2)
+    return ids, pairs, np.array([n for _, n in found], np.float64)
 
 
 def strongest_edges(n: int, edges: np.ndarray, weights: np.ndarray, k: int) -> sparse.csr_matrix:
@@ -108,6 +106,11 @@ def _best_sweep(weights: sparse.csr_matrix, degree: np.ndarray, order: np.ndarra
     return side
 
 
+def _largest_first(parts) -> list[np.ndarray]:
+    """Node sets, largest first, ties by their smallest node (the same order every run)."""
+    return sorted(parts, key=lambda nodes: (-len(nodes), int(nodes.min())))
+
+
 def leaves(weights: sparse.csr_matrix, leaf_size: int) -> list[np.ndarray]:
     """Node index sets of at most ``leaf_size`` nodes: connected parts, cut in two until small enough."""
     count, labels = connected_components(weights, directed=False)
@@ -125,13 +128,13 @@ def leaves(weights: sparse.csr_matrix, leaf_size: int) -> list[np.ndarray]:
             continue
         side = bisect(sub)
         todo.extend([nodes[~side], nodes[side]])
-    return sorted(done, key=lambda nodes: (-len(nodes), int(nodes.min())))
+    return _largest_first(done)
 
 
 def absorb_fragments(weights: sparse.csr_matrix, parts: list[np.ndarray], smallest: int) -> list[np.ndarray]:
     """``parts`` with each one of fewer than ``smallest`` nodes joined to the part it has most edge weight into
     (a cut can strand a few photos whose links all crossed it; alone they would map to nothing)."""
-    parts = sorted(parts, key=lambda nodes: (-len(nodes), int(nodes.min())))
+    parts = _largest_first(parts)
     owner = np.full(weights.shape[0], -1)
     for k, nodes in enumerate(parts):
         owner[nodes] = k
@@ -140,15 +143,14 @@ def absorb_fragments(weights: sparse.csr_matrix, parts: list[np.ndarray], smalle
         if len(nodes) >= smallest:
             continue
         strength = np.bincount(owner[weights[nodes].indices], weights[nodes].data, minlength=len(parts))
-        strength[k] = 0.0
-        strength[[j for j, other in enumerate(parts) if len(other) == 0]] = 0.0
+        strength[k] = 0.0  # a part already joined to another owns no node any more: no strength either
         if strength.max() <= 0:
             continue  # a small connected part of its own: it stays a cluster
         target = int(np.argmax(strength))
         parts[target] = np.sort(np.r_[parts[target], nodes])
         owner[nodes] = target
         parts[k] = nodes[:0]
-    return sorted((p for p in parts if len(p)), key=lambda nodes: (-len(nodes), int(nodes.min())))
+    return _largest_first(p for p in parts if len(p))
 
 
 def with_overlap(weights: sparse.csr_matrix, leaf: np.ndarray, overlap: int) -> np.ndarray:
