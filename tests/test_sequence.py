@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -51,14 +52,16 @@ def twin_ring(rng) -> dict:
 
 @pytest.fixture(scope="module")
 def twins(tmp_path_factory):
-    """The twin ring reconstructed without and with the capture order: (views, (out, model) each)."""
+    """The twin ring reconstructed without the capture order ("plain"), in capture order from the start ("ordered",
+    the default), and in capture order only after all pairs gave a folded model ("after"): (views, (out, model)
+    each)."""
     root = tmp_path_factory.mktemp("twins")
     views = twin_ring(np.random.default_rng(3))
     runs = {}
-    for name, enabled in (("plain", False), ("ordered", True)):
+    for name, enabled, first in (("plain", False, False), ("ordered", True, True), ("after", True, False)):
         images, out = write_scene(root / name, views, SIFT)
         config = ReconstructConfig(features=SIFT, camera=CALIBRATED)
-        config.sequence.enabled = enabled
+        config.sequence.enabled, config.sequence.order_first = enabled, first
         runs[name] = out, reconstruct(images, out, config, progress=False)
     return views, runs
 
@@ -80,9 +83,63 @@ def test_look_alikes_fold_the_model_without_the_order(twins):
     assert np.median(rotation_errors(views, model)) > 20
 
 
-def test_the_capture_order_unfolds_it(twins):
+def test_mapped_in_capture_order_the_model_never_folds(twins):
+    """The chain of near photos mapped, the far look-alike pairs dropped against it, the rest triangulated onto
+    its poses: one model, every photo, within a degree, and no mapping of all pairs before it."""
     views, runs = twins
     out, model = runs["ordered"]
+    stats = json.loads((out / "stats.json").read_text())
+    record = stats["sequence"]
+    assert record["reason"] == "ordered" and record["remapped"] and record["kept"] == "closed"
+    assert record["dropped"] >= 6 and all(p["apart"] > 3 for p in record["dropped_pairs"])
+    assert not record["models"]["closed"]["suspect"] and record["models"]["closed"]["registered"] == RING
+    assert pycolmap.Reconstruction(str(model)).num_reg_images() == RING
+    assert max(rotation_errors(views, model)) < 1.0
+    assert not stats["model_check"][0]["suspect"]
+    assert "capture order" not in stats["timings_s"]  # part of mapping: no second mapping after it
+    assert stats["final_filter"]["observations"] > 0
+
+
+def test_a_chain_that_leaves_photos_out_falls_back_to_all_pairs(tmp_path):
+    """When the chain of near photos does not hold (nearly) every photo, all pairs are mapped at once instead,
+    and the record says why."""
+    views = twin_ring(np.random.default_rng(3))
+    images, out = write_scene(tmp_path / "scene", views, SIFT)
+    config = ReconstructConfig(features=SIFT, camera=CALIBRATED)
+    config.sequence.max_left_out = -0.01  # a chain of every photo is not enough: as if it had left one out
+    model = reconstruct(images, out, config, progress=False)
+    record = json.loads((out / "stats.json").read_text())["sequence"]
+    assert record["reason"] == "ordered" and not record["remapped"]
+    assert record["chain_registered"] == RING and record["photos"] == RING
+    assert pycolmap.Reconstruction(str(model)).num_reg_images() >= RING // 2
+
+
+def test_when_the_far_pairs_fold_the_closed_model_the_chain_alone_is_kept(tmp_path, monkeypatch):
+    """The closed model judged folded (as on a mirror-symmetric walk, whose far mirror pairs fit the chain): the
+    chain is kept, adjusted and filtered over its own pairs, and the database holds only those."""
+    import sekd_sfm.pipelines.ordered as ordered
+
+    real = ordered.check_model
+
+    def closed_folds(model, database, config):
+        return {**real(model, database, config), "suspect": Path(database).name == "closed.db"}
+
+    monkeypatch.setattr(ordered, "check_model", closed_folds)
+    views = twin_ring(np.random.default_rng(3))
+    images, out = write_scene(tmp_path / "scene", views, SIFT)
+    model = reconstruct(images, out, ReconstructConfig(features=SIFT, camera=CALIBRATED), progress=False)
+    stats = json.loads((out / "stats.json").read_text())
+    record = stats["sequence"]
+    assert record["kept"] == "chain" and record["models"]["closed"]["suspect"]
+    assert all(pair.gap <= 3 for pair in verified_pairs(out / "database.db", 1))
+    assert pycolmap.Reconstruction(str(model)).num_reg_images() == RING
+    assert max(rotation_errors(views, model)) < 1.0
+    assert stats["final_filter"]["observations"] > 0  # the chain kept is filtered too
+
+
+def test_the_capture_order_unfolds_a_folded_model(twins):
+    views, runs = twins
+    out, model = runs["after"]
     stats = json.loads((out / "stats.json").read_text())
     record = stats["sequence"]
     assert record["reason"] == "folded" and record["remapped"] and record["kept"] in ("remapped", "chain")
@@ -96,7 +153,7 @@ def test_the_capture_order_unfolds_it(twins):
 
 def test_chain_database_keeps_near_pairs_only(twins, tmp_path):
     _, runs = twins
-    database = runs["ordered"][0] / "database.db"
+    database = runs["after"][0] / "database.db"
     far = chain_database(database, tmp_path / "chain.db", window=3)
     kept = verified_pairs(tmp_path / "chain.db", 1)
     assert far and all(p.gap > 3 for p in far) and kept and all(p.gap <= 3 for p in kept)
@@ -157,3 +214,13 @@ def test_the_summary_line_says_what_was_done():
                                    "over 3 photos apart dropped (their inliers do not fit the order's poses); kept: "
                                    "97 photos, not folded")
     assert sequence_line({**done, "kept": "before"}).endswith("no better model came of it, the first stays")
+    models = {"closed": {"suspect": False, "registered": 24}, "chain": {"suspect": False, "registered": 24}}
+    ordered = sequence_record("ordered", 1.0, config, remapped=True, far_pairs=210, dropped=206, dropped_pairs=[],
+                              kept="closed", models=models)
+    assert sequence_line(ordered) == ("photos at most 3 apart mapped first; 206 of 210 farther pairs dropped (their "
+                                      "inliers do not fit that chain's poses), the rest triangulated onto its poses: "
+                                      "24 photos")
+    assert "the chain alone is kept: 24 photos" in sequence_line({**ordered, "kept": "chain"})
+    broken = sequence_record("ordered", 0.9, config, remapped=False, chain_registered=40, photos=97)
+    assert sequence_line(broken) == ("the chain of photos at most 3 apart in the order holds 40 of 97 photos: all "
+                                     "pairs mapped at once instead")

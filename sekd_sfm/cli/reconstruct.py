@@ -146,10 +146,11 @@ chance_option = click.option(
 
 capture_order_option = click.option(
     "--capture-order/--no-capture-order", default=True, show_default=True,
-    help="When the model comes out folded (the model check) or split, and the photos' names give an order in which "
-         "nearly every photo is verified with the next (a walk, a turntable, a video's keyframes): map again in that "
-         "order, first the photos at most 3 apart, then the farther pairs that fit those poses; the better model is "
-         "kept. Look-alikes far apart in a capture then cannot fold the model. stats.json sequence lists the drops.")
+    help="When the photos' names give an order in which nearly every photo is verified with the next (a walk, a "
+         "turntable, a video's keyframes): map in that order, first the photos at most 3 apart (a chain), then drop "
+         "the farther pairs that do not fit its poses and triangulate the rest onto them. Look-alikes far apart in a "
+         "capture then cannot fold the model. Photos in no order are mapped all at once (a folded model is "
+         "reported). stats.json sequence lists the drops.")
 
 
 def mapping_options(*, verification: bool = True) -> Decorator:

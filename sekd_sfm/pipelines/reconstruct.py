@@ -11,9 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
-import tempfile
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -41,7 +38,6 @@ from ..stages.extract import changed_masks, extract_features
 from ..stages.georef import GpsPlan, georeference, photo_names, plan_gps, write_georef
 from ..stages.keyframes import link_photos, prepare_captures
 from ..stages.mapping import (
-    SCRATCH_PREFIX,
     clean_scratch,
     mapper_options,
     min_model_size,
@@ -74,24 +70,12 @@ from ..stages.rig import (
     rig_record,
     write_rigs,
 )
-from ..stages.sequence import (
-    better,
-    chain_database,
-    disagreeing_pairs,
-    drop_pairs,
-    linked_share,
-    listed_pairs,
-    rank,
-    registered,
-    remap_reason,
-    sequence_record,
-    verified_pairs,
-)
 from ..stages.verification import verify_pairs
 from ..stages.viewgraph import check_view_graph
 from . import record
 from .config import DEFAULT_MAPPER, DEFAULT_RESIZE_MAX, ReconstructConfig, config_dict
 from .extend import ExtendOptions, extend_model
+from .ordered import map_in_capture_order, order_first, record_principal_point, sequence
 from .report import (
     ReconstructionError,
     check_enough_matches,
@@ -99,7 +83,6 @@ from .report import (
     explain_no_model,
     folded_warning,
     match_statistics,
-    sequence_line,
     summarize_matches,
     unregistered_report,
 )
@@ -399,7 +382,7 @@ def principal_point(run: Run, s: Reconstruction) -> Reconstruction:
     tests it); sets the mapper's refinement in the options. An explicit ``--mapper ...refine_principal_point=...``
     wins."""
     s.principal_point = plan_principal_point(s.config.camera, s.config.mapper, s.database, s.options)
-    _record_principal_point(s)
+    record_principal_point(s)
     return s
 
 
@@ -436,12 +419,15 @@ def view_graph(run: Run, s: Reconstruction) -> Reconstruction:
 
 
 def mapping(run: Run, s: Reconstruction) -> Reconstruction:
-    """The models (largest first), filtered after mapping, the principal point settled."""
+    """The models (largest first), filtered after mapping, the principal point settled. An ordered capture is
+    mapped in capture order (``stages.sequence``); other photos, or a chain that leaves photos out, all pairs at
+    once."""
     filtered: list = []
     hierarchical: dict = {}
-    s.models = run_mapper(s.database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
-                          final_filter=s.config.final_filter, records=filtered, executor=run.executor,
-                          details=hierarchical)
+    ordered = map_in_capture_order(run, s, filtered, hierarchical) if order_first(s) else None
+    s.models = ordered if ordered is not None else run_mapper(
+        s.database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
+        final_filter=s.config.final_filter, records=filtered, executor=run.executor, details=hierarchical)
     s.stats["hierarchical"] = hierarchical or None
     if not s.models and (s.stats.get("rig") or {}).get("estimated"):
         raise ReconstructionError(
@@ -451,77 +437,8 @@ def mapping(run: Run, s: Reconstruction) -> Reconstruction:
             "give them in the rig file (cam_from_rig_rotation, cam_from_rig_translation)")
     s.stats["final_filter"] = filtered[0] if filtered else None
     s.models = s.principal_point.settle(s.models, run.out, s.options, run.progress, log_prefix(s.log))
-    _record_principal_point(s)
+    record_principal_point(s)
     return s
-
-
-def sequence(run: Run, s: Reconstruction) -> Reconstruction:
-    """A folded or split model of an ordered capture mapped again in capture order (``stages.sequence``): the
-    photos near each other in the order first, then the farther pairs that fit that chain. The new model and its
-    database replace the old ones only when the new model is better (not folded, else more photos)."""
-    config = s.config.sequence
-    check = check_model(s.models[0], s.database, s.config.model_check) if s.models else {"suspect": False}
-    photos = sum(1 for image in s.match_stats["images"].values() if image["verified_pairs"])
-    reason = remap_reason(s.models, check["suspect"], photos, config)
-    if reason is None:
-        return s
-    linked = linked_share(verified_pairs(s.database, min_num_matches(s.options)))
-    if linked < config.min_linked:
-        s.stats["sequence"] = sequence_record(reason, linked, config, remapped=False)
-        return s
-    with run.timed("capture order"):
-        return _remap_in_order(run, s, reason, linked, check["suspect"])
-
-
-def _remap_in_order(run: Run, s: Reconstruction, reason: str, linked: float, suspect: bool) -> Reconstruction:
-    """``sequence``'s two passes, the better model kept and the record written."""
-    config = s.config.sequence
-    scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
-    try:
-        far, dropped, candidates = _map_in_order(run, s, scratch)
-        scores = {"before": (suspect, registered(s.models))}
-        # Each candidate checked against the pairs it was mapped from, at the far pairs' tolerance (the chain
-        # drifts a little over long loops; a fold is off by far more).
-        tolerant = replace(s.config.model_check, max_error_px=config.max_error_px)
-        for name, (models, db) in candidates.items():
-            scores[name] = (check_model(models[0], db, tolerant)["suspect"], registered(models)) if models \
-                else (True, 0)
-        kept = max(("remapped", "chain", "before"), key=lambda k: rank(scores[k]))
-        kept = kept if better(scores[kept], scores["before"]) else "before"
-        if kept != "before":
-            models, db = candidates[kept]
-            s.models = s.principal_point.settle(models, run.out, s.options, run.progress, log_prefix(s.log))
-            os.replace(db, s.database)  # the pairs the kept model was mapped from
-            _record_principal_point(s)
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
-    s.stats["sequence"] = sequence_record(
-        reason, linked, config, remapped=True, far_pairs=len(far), dropped=len(dropped),
-        dropped_pairs=listed_pairs(dropped, config.listed), kept=kept,
-        models={k: {"suspect": v[0], "registered": v[1]} for k, v in scores.items()})
-    logger.info("capture order: %s", sequence_line(s.stats["sequence"]))
-    return s
-
-
-def _map_in_order(run: Run, s: Reconstruction, scratch: Path) -> tuple[list, list, dict]:
-    """The two passes of ``stages.sequence`` on copies of the database in ``scratch``: the far pairs, those dropped
-    (with their agreement) and the candidates ``{"chain": (models, database), "remapped": (models, database)}``."""
-    config = s.config.sequence
-    chain_db, final_db = scratch / "chain.db", scratch / "final.db"
-    far = chain_database(s.database, chain_db, config.window)
-    chain = _map_raw(run, s, chain_db)
-    dropped = disagreeing_pairs(chain, s.database, far, config)
-    shutil.copyfile(s.database, final_db)
-    drop_pairs(final_db, [pair for pair, _ in dropped])
-    final = _map_raw(run, s, final_db) if chain else []
-    return far, dropped, {"chain": (chain, chain_db), "remapped": (final, final_db)}
-
-
-def _map_raw(run: Run, s: Reconstruction, database: Path) -> list:
-    """The models of ``database`` (largest first) by the run's mapper and final filter, the principal point as
-    mapped."""
-    return run_mapper(database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
-                      final_filter=s.config.final_filter, executor=run.executor)
 
 
 def georeferencing(run: Run, s: Reconstruction) -> Reconstruction:
@@ -569,7 +486,7 @@ RECONSTRUCT: tuple[Step, ...] = (
     Step("rig calibration", rig_calibration, when=lambda s: bool(s.rigs) and not poses_known(s.rigs)),
     Step("mapping", mapping),
     Step("capture order", sequence, timed=False,  # timed by itself, only when it maps again
-         when=lambda s: s.config.sequence.enabled and not s.rigs and not s.panoramas),
+         when=lambda s: s.config.sequence.enabled and not s.rigs and not s.panoramas and not s.stats.get("sequence")),
     Step("georeference", georeferencing, timed=False),
     Step("model check", model_check, when=lambda s: s.config.model_check.enabled),
 )
@@ -586,11 +503,6 @@ def _keep_rigs(s: Reconstruction, given_cameras: dict[str, int]) -> None:
         if given_cameras and len(given_cameras) == len(images_per_camera(s.database)):
             ba = options.mapper.bundle_adjustment
             ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
-
-
-def _record_principal_point(s: Reconstruction) -> None:
-    s.stats["principal_point"], s.stats["principal_point_decision"] = (s.principal_point.outcome,
-                                                                       s.principal_point.details())
 
 
 def _num_photos(image_dir: Path, features: str | Path | None) -> int:

@@ -211,6 +211,8 @@ def folded_warning(check: dict) -> str:
 
 def sequence_line(record: dict) -> str:
     """One line: what mapping in capture order (``stats.json`` ``sequence``) did and which model was kept."""
+    if record["reason"] == "ordered":
+        return _ordered_line(record)
     why = "folded" if record["reason"] == "folded" else "split"
     if not record.get("remapped"):
         return (f"the model is {why}; the photos are no ordered capture ({record['linked']:.0%} of consecutive "
@@ -223,6 +225,21 @@ def sequence_line(record: dict) -> str:
     if after is None:
         return done + "; no better model came of it, the first stays"
     return done + f"; kept: {after['registered']} photos" + (", still folded" if after["suspect"] else ", not folded")
+
+
+def _ordered_line(record: dict) -> str:
+    """``sequence_line`` of an ordered capture mapped in capture order from the start."""
+    window = record["config"]["window"]
+    if not record.get("remapped"):
+        return (f"the chain of photos at most {window} apart in the order holds {record['chain_registered']} of "
+                f"{record['photos']} photos: all pairs mapped at once instead")
+    done = (f"photos at most {window} apart mapped first; {record['dropped']} of {record['far_pairs']} farther pairs "
+            "dropped (their inliers do not fit that chain's poses)")
+    kept = record["models"][record["kept"]]
+    if record["kept"] == "closed":
+        return done + f", the rest triangulated onto its poses: {kept['registered']} photos" + (
+            ", folded" if kept["suspect"] else "")
+    return done + f"; with the rest it folds, so the chain alone is kept: {kept['registered']} photos"
 
 
 def _capture_lines(stats: dict) -> list[str]:

@@ -198,10 +198,12 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
 def merge_clusters(request: dict, options, pycolmap) -> dict:
     """The models of the clusters mapped on the executor (``request["clusters"]``: their ``model_arrays``),
     merged, triangulated again from the database, adjusted as a whole, and kept when they hold ``min_model_size``
-    photos. ``request["merge"]`` gets the record: pieces, models, seconds of each step."""
+    photos. ``request["merge"]`` gets the record: pieces, models, seconds of each step. ``options``: the
+    hierarchical mapper's, or the incremental mapper's (one model's poses closed over the database: the capture
+    order's chain, ``run_mapper(poses_from=...)``)."""
     from .cluster_merge import assemble, merge_pieces, pieces_of
 
-    inner = options.incremental_options
+    inner = getattr(options, "incremental_options", options)
     start = time.perf_counter()
     pieces = [piece for arrays in request["clusters"] for piece in pieces_of(arrays)]
     merged = [piece for piece in merge_pieces(pieces) if len(piece.poses) >= int(inner.min_model_size)]
@@ -225,14 +227,14 @@ def run(request: dict) -> list:
     options, kind = request["options"], request["mapper_type"]
     pycolmap.set_random_seed(max(0, int(request.get("seed", 0))))
     args = (str(request["database"]), str(request["image_dir"]), str(request["scratch"]), options)
-    if kind == "incremental":
+    if request.get("clusters") is not None:  # poses mapped elsewhere: clusters, or a chain to close
+        found = merge_clusters(request, options, pycolmap)
+    elif kind == "incremental":
         found = pycolmap.incremental_mapping(*args, input_path=request.get("input_path") or "",
                                              initial_image_pair_callback=lambda: _event("pair"),
                                              next_image_callback=lambda: _event("image"))
     elif kind == "global":
         found = pycolmap.global_mapping(*args)
-    elif kind == "hierarchical" and request.get("clusters") is not None:  # mapped on the executor
-        found = merge_clusters(request, options, pycolmap)
     elif kind == "hierarchical":
         found = pycolmap.hierarchical_mapping(*args)
         for reconstruction in found.values():

@@ -182,7 +182,7 @@ def clean_scratch(folder: Path) -> None:
 def run_mapper(database: str | Path, image_dir: str | Path, options=None, progress: bool = True,
                log_prefix: str | Path | None = None, input_model: str | Path | None = None,
                final_filter: bool = False, records: list | None = None, executor="local",
-               details: dict | None = None) -> list:
+               details: dict | None = None, poses_from: list[dict] | None = None) -> list:
     """Map ``database`` with the mapper of ``options``; the reconstructions found, largest first (may be empty).
 
     ``options`` is one of pycolmap's pipeline option objects (``mapper_options``; default:
@@ -196,6 +196,9 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
     ``executor`` (a name or an open ``execution.Executor``): where the hierarchical mapper's clusters are mapped
     (``stages.hierarchical``); the merge runs in the child. ``details`` gets the hierarchical mapper's record:
     ``clusters`` (``hierarchical.map_clusters``) and ``merge`` (``mapper_worker.merge_clusters``).
+    ``poses_from``: no mapping; models already mapped (``hierarchical.model_arrays`` of each, e.g. the capture
+    order's chain on fewer pairs) are triangulated again from ``database`` with their poses held and adjusted as
+    a whole (incremental or hierarchical options), as the hierarchical mapper's clusters are merged.
     """
     require_pycolmap()
     options = options if options is not None else mapper_options()
@@ -208,7 +211,11 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
                "seed": _seed(options), "log_prefix": str(log_prefix) if log_prefix else None,
                "input_path": str(input_model) if input_model else "", "final_filter": final_filter}
     details = {} if details is None else details
-    if kind == "hierarchical" and can_map_clusters(database):
+    if poses_from is not None:
+        if kind == "global":
+            raise SekdError("poses_from needs incremental or hierarchical mapper options (their triangulation)")
+        request["clusters"] = poses_from
+    elif kind == "hierarchical" and can_map_clusters(database):
         try:
             details["clusters"] = {}
             request["clusters"] = map_clusters(database, image_dir, options, executor, log_prefix=log_prefix,
@@ -216,7 +223,7 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
         except BaseException:
             shutil.rmtree(scratch, ignore_errors=True)
             raise
-    bar = _MapperProgress(total, kind, progress)
+    bar = _MapperProgress(total, kind if poses_from is None else "poses held", progress)
     try:
         _run_child(request, scratch, bar)
         reconstruction = require_pycolmap().Reconstruction

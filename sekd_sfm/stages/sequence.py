@@ -3,18 +3,23 @@
 On repeated or symmetric structure a folded model is more consistent with the verified pairs than the
 right one: look-alike pairs outnumber the few right pairs across the fold, so no count of agreeing pairs
 can choose the right model (docs/experiments.md, section 32). A capture taken in order says more: photos
-next to each other in it show the same place, look-alikes are far apart in it. So when the mapped model is
-folded (``modelcheck``) or split, and the photos' names give an order in which nearly every photo is verified
-with the next, the photos are mapped again in two passes:
+next to each other in it show the same place, look-alikes are far apart in it. So when the photos' names give
+an order in which nearly every photo is verified with the next, they are mapped in capture order:
 
 1. only the pairs of photos at most ``window`` apart in the order: a chain that look-alikes cannot fold
    (it may drift a little over a long loop);
 2. every farther pair checked against the chain's poses, as the model check does: a pair whose inliers
-   do not fit them (under ``min_agreement`` within ``max_error_px``) is dropped; all photos mapped again
-   with the pairs kept (loop closures and right far pairs tie the chain, its drift goes).
+   do not fit them (under ``min_agreement`` within ``max_error_px``) is dropped;
+3. ``order_first`` (the default): the chain's poses held, every point triangulated again from the pairs kept
+   and the whole model adjusted (loop closures and right far pairs tie the chain, its drift goes), as the
+   hierarchical mapper's clusters are merged; no mapping of all the pairs at all, so no first model that
+   look-alikes fold and no mapper trying initial pair after initial pair on wrong pairs. A chain that leaves
+   photos out, or a result the model check suspects, falls back to mapping all pairs.
+   Without ``order_first``: all pairs are mapped first, and only a folded (``modelcheck``) or split model
+   is mapped again in two passes, the chain and then all photos with the pairs kept.
 
-The pipeline keeps the new model only when it is better (not folded, else more photos). Measured:
-docs/experiments.md, section 35.
+The pipeline keeps a model only when it is better (not folded, else more photos). Measured:
+docs/experiments.md, sections 35 and 38.
 """
 from __future__ import annotations
 
@@ -35,6 +40,9 @@ class SequenceConfig:
     """Settings of the capture-order remapping (module doc)."""
 
     enabled: bool = True
+    #: An ordered capture is mapped in capture order from the start (module doc, step 3), not only after all
+    #: pairs gave a folded or split model.
+    order_first: bool = True
     #: Photos at most this far apart in the capture order are mapped first (the chain).
     window: int = 3
     #: The photos count as an ordered capture when at least this share of consecutive photos (those with a

@@ -1,0 +1,175 @@
+"""The capture order's steps of ``sekd reconstruct`` (``stages.sequence``): an ordered capture mapped in capture
+order from the start (``map_in_capture_order``, called by the mapping step), or, when the photos were mapped all
+at once, a folded or split model mapped again in capture order afterwards (``sequence``, the step "capture
+order")."""
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from ..stages.colmap import log_prefix
+from ..stages.hierarchical import model_arrays
+from ..stages.mapping import SCRATCH_PREFIX, mapper_type_of, min_num_matches, run_mapper
+from ..stages.modelcheck import check_model
+from ..stages.sequence import (
+    better,
+    chain_database,
+    disagreeing_pairs,
+    drop_pairs,
+    linked_share,
+    listed_pairs,
+    rank,
+    registered,
+    remap_reason,
+    sequence_record,
+    verified_pairs,
+)
+from .report import sequence_line
+from .run import Run
+
+#: The state of ``sekd reconstruct``'s steps (``reconstruct.Reconstruction``; not imported: it imports this module).
+Reconstruction = Any
+
+logger = logging.getLogger("sekd")
+
+
+def order_first(s: Reconstruction) -> bool:
+    """Whether the photos are mapped in capture order from the start (``SequenceConfig.order_first``): free photos
+    (no rigs, no panoramas) and a mapper that triangulates incrementally (not the global one)."""
+    config = s.config.sequence
+    return (config.enabled and config.order_first and not s.rigs and not s.panoramas
+            and mapper_type_of(s.options) != "global")
+
+
+def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: dict) -> list | None:
+    """``stages.sequence`` from the start: the chain of photos near each other in the order mapped, the farther
+    pairs that do not fit its poses dropped, the rest triangulated onto its poses and the whole adjusted; the
+    models (largest first), ``s.database`` replaced by the pairs they were made from. None when the photos are no
+    ordered capture or the chain leaves photos out: then all pairs are mapped at once."""
+    config = s.config.sequence
+    linked = linked_share(verified_pairs(s.database, min_num_matches(s.options)))
+    if linked < config.min_linked:
+        return None
+    photos = sum(1 for image in s.match_stats["images"].values() if image["verified_pairs"])
+    scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
+    try:
+        chain_db, closed_db = scratch / "chain.db", scratch / "closed.db"
+        far = chain_database(s.database, chain_db, config.window)
+        # The chain's poses only: its final filter would be undone by closing it (kept alone, it is closed below).
+        chain = run_mapper(chain_db, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
+                           executor=run.executor, details=details)
+        if registered(chain) < (1 - config.max_left_out) * photos:
+            s.stats["sequence"] = sequence_record("ordered", linked, config, remapped=False,
+                                                  chain_registered=registered(chain), photos=photos)
+            return None
+        dropped = disagreeing_pairs(chain, s.database, far, config)
+        shutil.copyfile(s.database, closed_db)
+        drop_pairs(closed_db, [pair for pair, _ in dropped])
+        closed, records = _close(run, s, closed_db, chain)
+        # Each checked against the pairs it was made from, at the far pairs' tolerance (the chain drifts a little
+        # over long loops; a fold is off by far more).
+        tolerant = replace(s.config.model_check, max_error_px=config.max_error_px)
+        scores = {name: (check_model(models[0], db, tolerant)["suspect"], registered(models)) if models else (True, 0)
+                  for name, models, db in (("closed", closed, closed_db), ("chain", chain, chain_db))}
+        kept = max(("closed", "chain"), key=lambda name: rank(scores[name]))
+        if kept == "chain":  # the far pairs kept fold it: the chain alone, adjusted and filtered over its own pairs
+            closed, records = _close(run, s, chain_db, chain)
+        os.replace(closed_db if kept == "closed" else chain_db, s.database)  # the pairs the kept model was made from
+        filtered.extend(records)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    s.stats["sequence"] = sequence_record(
+        "ordered", linked, config, remapped=True, far_pairs=len(far), dropped=len(dropped),
+        dropped_pairs=listed_pairs(dropped, config.listed), kept=kept,
+        models={k: {"suspect": v[0], "registered": v[1]} for k, v in scores.items()})
+    logger.info("capture order: %s", sequence_line(s.stats["sequence"]))
+    return closed
+
+
+def _close(run: Run, s: Reconstruction, database: Path, chain: list) -> tuple[list, list]:
+    """The chain's largest model with its poses held, its points triangulated again from ``database``'s pairs, the
+    whole adjusted and filtered (``run_mapper(poses_from=...)``): the models and the final filter's records."""
+    records: list = []
+    models = run_mapper(database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
+                        final_filter=s.config.final_filter, records=records, poses_from=[model_arrays(chain[:1])])
+    return models, records
+
+
+def sequence(run: Run, s: Reconstruction) -> Reconstruction:
+    """A folded or split model of an ordered capture mapped again in capture order (``stages.sequence``): the
+    photos near each other in the order first, then the farther pairs that fit that chain. The new model and its
+    database replace the old ones only when the new model is better (not folded, else more photos)."""
+    config = s.config.sequence
+    check = check_model(s.models[0], s.database, s.config.model_check) if s.models else {"suspect": False}
+    photos = sum(1 for image in s.match_stats["images"].values() if image["verified_pairs"])
+    reason = remap_reason(s.models, check["suspect"], photos, config)
+    if reason is None:
+        return s
+    linked = linked_share(verified_pairs(s.database, min_num_matches(s.options)))
+    if linked < config.min_linked:
+        s.stats["sequence"] = sequence_record(reason, linked, config, remapped=False)
+        return s
+    with run.timed("capture order"):
+        return _remap_in_order(run, s, reason, linked, check["suspect"])
+
+
+def _remap_in_order(run: Run, s: Reconstruction, reason: str, linked: float, suspect: bool) -> Reconstruction:
+    """``sequence``'s two passes, the better model kept and the record written."""
+    config = s.config.sequence
+    scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
+    try:
+        far, dropped, candidates = _map_in_order(run, s, scratch)
+        scores = {"before": (suspect, registered(s.models))}
+        # Each candidate checked against the pairs it was mapped from, at the far pairs' tolerance (the chain
+        # drifts a little over long loops; a fold is off by far more).
+        tolerant = replace(s.config.model_check, max_error_px=config.max_error_px)
+        for name, (models, db) in candidates.items():
+            scores[name] = (check_model(models[0], db, tolerant)["suspect"], registered(models)) if models \
+                else (True, 0)
+        kept = max(("remapped", "chain", "before"), key=lambda k: rank(scores[k]))
+        kept = kept if better(scores[kept], scores["before"]) else "before"
+        if kept != "before":
+            models, db = candidates[kept]
+            s.models = s.principal_point.settle(models, run.out, s.options, run.progress, log_prefix(s.log))
+            os.replace(db, s.database)  # the pairs the kept model was mapped from
+            record_principal_point(s)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    s.stats["sequence"] = sequence_record(
+        reason, linked, config, remapped=True, far_pairs=len(far), dropped=len(dropped),
+        dropped_pairs=listed_pairs(dropped, config.listed), kept=kept,
+        models={k: {"suspect": v[0], "registered": v[1]} for k, v in scores.items()})
+    logger.info("capture order: %s", sequence_line(s.stats["sequence"]))
+    return s
+
+
+def _map_in_order(run: Run, s: Reconstruction, scratch: Path) -> tuple[list, list, dict]:
+    """The two passes of ``stages.sequence`` on copies of the database in ``scratch``: the far pairs, those dropped
+    (with their agreement) and the candidates ``{"chain": (models, database), "remapped": (models, database)}``."""
+    config = s.config.sequence
+    chain_db, final_db = scratch / "chain.db", scratch / "final.db"
+    far = chain_database(s.database, chain_db, config.window)
+    chain = _map_raw(run, s, chain_db)
+    dropped = disagreeing_pairs(chain, s.database, far, config)
+    shutil.copyfile(s.database, final_db)
+    drop_pairs(final_db, [pair for pair, _ in dropped])
+    final = _map_raw(run, s, final_db) if chain else []
+    return far, dropped, {"chain": (chain, chain_db), "remapped": (final, final_db)}
+
+
+def _map_raw(run: Run, s: Reconstruction, database: Path) -> list:
+    """The models of ``database`` (largest first) by the run's mapper and final filter, the principal point as
+    mapped."""
+    return run_mapper(database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
+                      final_filter=s.config.final_filter, executor=run.executor)
+
+
+def record_principal_point(s: Reconstruction) -> None:
+    """The principal point's outcome and decision into the record, after the models it settled."""
+    s.stats["principal_point"], s.stats["principal_point_decision"] = (s.principal_point.outcome,
+                                                                       s.principal_point.details())
