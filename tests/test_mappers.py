@@ -186,6 +186,27 @@ def test_a_failing_mapper_is_one_clear_error(tmp_path):
 
 
 
+def test_poses_from_a_model_are_closed_over_the_database(scene, tmp_path):
+    """``run_mapper(poses_from=...)``: no mapping; the model's poses held, its points triangulated again from the
+    database and the whole adjusted: the same photos, the cameras where they were (how the capture order closes
+    its chain). The global mapper's options cannot do it: one error, nothing left behind."""
+    from sekd_sfm.stages.hierarchical import model_arrays
+
+    images, first = scene
+    model = pycolmap.Reconstruction(str(first / "model"))
+    database = tmp_path / "database.db"
+    database.write_bytes((first / "database.db").read_bytes())
+    closed = run_mapper(database, images, mapper_options(), progress=False, poses_from=[model_arrays([model])])
+    assert len(closed) == 1 and closed[0].num_reg_images() == 12 and closed[0].num_points3D() > 300
+    for image_id in model.reg_image_ids():
+        before, after = model.image(image_id).projection_center(), closed[0].image(image_id).projection_center()
+        assert np.linalg.norm(before - after) < 1e-2 * np.linalg.norm(before)
+    with pytest.raises(SekdError, match="poses_from needs incremental or hierarchical"):
+        run_mapper(database, images, mapper_options(mapper_type="global"), progress=False,
+                   poses_from=[model_arrays([model])])
+    assert not list(tmp_path.glob("mapping-*"))
+
+
 def test_the_mapper_dies_with_a_killed_parent(tmp_path):
     """kill -9 of `sekd` mid-mapping: the child must not map on alone (Linux parent-death signal)."""
     database = tmp_path / "database.db"

@@ -203,6 +203,8 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
     require_pycolmap()
     options = options if options is not None else mapper_options()
     kind = mapper_type_of(options)
+    if poses_from is not None and kind == "global":
+        raise SekdError("poses_from needs incremental or hierarchical mapper options (their triangulation)")
     with open_database(database) as db:
         total = db.num_images()
     scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=Path(database).parent))
@@ -212,8 +214,6 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
                "input_path": str(input_model) if input_model else "", "final_filter": final_filter}
     details = {} if details is None else details
     if poses_from is not None:
-        if kind == "global":
-            raise SekdError("poses_from needs incremental or hierarchical mapper options (their triangulation)")
         request["clusters"] = poses_from
     elif kind == "hierarchical" and can_map_clusters(database):
         try:
