@@ -55,7 +55,7 @@ def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: d
     linked = linked_share(verified_pairs(s.database, min_num_matches(s.options)))
     if linked < config.min_linked:
         return None
-    photos = sum(1 for image in s.match_stats["images"].values() if image["verified_pairs"])
+    photos = _photos_with_pairs(s)
     scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
     try:
         chain_db, closed_db = scratch / "chain.db", scratch / "closed.db"
@@ -67,15 +67,9 @@ def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: d
             s.stats["sequence"] = sequence_record("ordered", linked, config, remapped=False,
                                                   chain_registered=registered(chain), photos=photos)
             return None
-        dropped = disagreeing_pairs(chain, s.database, far, config)
-        shutil.copyfile(s.database, closed_db)
-        drop_pairs(closed_db, [pair for pair, _ in dropped])
+        dropped = _without_unfit_pairs(s, chain, far, closed_db)
         closed, records = _close(run, s, closed_db, chain)
-        # Each checked against the pairs it was made from, at the far pairs' tolerance (the chain drifts a little
-        # over long loops; a fold is off by far more).
-        tolerant = replace(s.config.model_check, max_error_px=config.max_error_px)
-        scores = {name: (check_model(models[0], db, tolerant)["suspect"], registered(models)) if models else (True, 0)
-                  for name, models, db in (("closed", closed, closed_db), ("chain", chain, chain_db))}
+        scores = {"closed": _verdict(s, closed, closed_db), "chain": _verdict(s, chain, chain_db)}
         kept = max(("closed", "chain"), key=lambda name: rank(scores[name]))
         if kept == "chain":  # the far pairs kept fold it: the chain alone, adjusted and filtered over its own pairs
             closed, records = _close(run, s, chain_db, chain)
@@ -83,11 +77,7 @@ def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: d
         filtered.extend(records)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    s.stats["sequence"] = sequence_record(
-        "ordered", linked, config, remapped=True, far_pairs=len(far), dropped=len(dropped),
-        dropped_pairs=listed_pairs(dropped, config.listed), kept=kept,
-        models={k: {"suspect": v[0], "registered": v[1]} for k, v in scores.items()})
-    logger.info("capture order: %s", sequence_line(s.stats["sequence"]))
+    _record_remap(s, "ordered", linked, far, dropped, kept, scores)
     return closed
 
 
@@ -106,7 +96,7 @@ def sequence(run: Run, s: Reconstruction) -> Reconstruction:
     database replace the old ones only when the new model is better (not folded, else more photos)."""
     config = s.config.sequence
     check = check_model(s.models[0], s.database, s.config.model_check) if s.models else {"suspect": False}
-    photos = sum(1 for image in s.match_stats["images"].values() if image["verified_pairs"])
+    photos = _photos_with_pairs(s)
     reason = remap_reason(s.models, check["suspect"], photos, config)
     if reason is None:
         return s
@@ -120,17 +110,11 @@ def sequence(run: Run, s: Reconstruction) -> Reconstruction:
 
 def _remap_in_order(run: Run, s: Reconstruction, reason: str, linked: float, suspect: bool) -> Reconstruction:
     """``sequence``'s two passes, the better model kept and the record written."""
-    config = s.config.sequence
     scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
     try:
         far, dropped, candidates = _map_in_order(run, s, scratch)
         scores = {"before": (suspect, registered(s.models))}
-        # Each candidate checked against the pairs it was mapped from, at the far pairs' tolerance (the chain
-        # drifts a little over long loops; a fold is off by far more).
-        tolerant = replace(s.config.model_check, max_error_px=config.max_error_px)
-        for name, (models, db) in candidates.items():
-            scores[name] = (check_model(models[0], db, tolerant)["suspect"], registered(models)) if models \
-                else (True, 0)
+        scores.update({name: _verdict(s, models, db) for name, (models, db) in candidates.items()})
         kept = max(("remapped", "chain", "before"), key=lambda k: rank(scores[k]))
         kept = kept if better(scores[kept], scores["before"]) else "before"
         if kept != "before":
@@ -140,11 +124,7 @@ def _remap_in_order(run: Run, s: Reconstruction, reason: str, linked: float, sus
             record_principal_point(s)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    s.stats["sequence"] = sequence_record(
-        reason, linked, config, remapped=True, far_pairs=len(far), dropped=len(dropped),
-        dropped_pairs=listed_pairs(dropped, config.listed), kept=kept,
-        models={k: {"suspect": v[0], "registered": v[1]} for k, v in scores.items()})
-    logger.info("capture order: %s", sequence_line(s.stats["sequence"]))
+    _record_remap(s, reason, linked, far, dropped, kept, scores)
     return s
 
 
@@ -155,9 +135,7 @@ def _map_in_order(run: Run, s: Reconstruction, scratch: Path) -> tuple[list, lis
     chain_db, final_db = scratch / "chain.db", scratch / "final.db"
     far = chain_database(s.database, chain_db, config.window)
     chain = _map_raw(run, s, chain_db)
-    dropped = disagreeing_pairs(chain, s.database, far, config)
-    shutil.copyfile(s.database, final_db)
-    drop_pairs(final_db, [pair for pair, _ in dropped])
+    dropped = _without_unfit_pairs(s, chain, far, final_db)
     final = _map_raw(run, s, final_db) if chain else []
     return far, dropped, {"chain": (chain, chain_db), "remapped": (final, final_db)}
 
@@ -167,6 +145,41 @@ def _map_raw(run: Run, s: Reconstruction, database: Path) -> list:
     mapped."""
     return run_mapper(database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
                       final_filter=s.config.final_filter, executor=run.executor)
+
+
+def _photos_with_pairs(s: Reconstruction) -> int:
+    """The photos with at least one verified pair (those a model can hold)."""
+    return sum(1 for image in s.match_stats["images"].values() if image["verified_pairs"])
+
+
+def _without_unfit_pairs(s: Reconstruction, chain: list, far: list, target: Path) -> list:
+    """A copy of ``s.database`` at ``target`` without the ``far`` pairs the ``chain``'s poses do not fit; those
+    pairs, each with its agreement (``stages.sequence.disagreeing_pairs``)."""
+    dropped = disagreeing_pairs(chain, s.database, far, s.config.sequence)
+    shutil.copyfile(s.database, target)
+    drop_pairs(target, [pair for pair, _ in dropped])
+    return dropped
+
+
+def _verdict(s: Reconstruction, models: list, database: Path) -> tuple[bool, int]:
+    """``(suspect, photos registered)`` of the largest of ``models`` (``(True, 0)`` without one), checked against
+    the pairs it was made from at the far pairs' tolerance: the chain drifts a little over long loops, a fold is
+    off by far more."""
+    if not models:
+        return True, 0
+    tolerant = replace(s.config.model_check, max_error_px=s.config.sequence.max_error_px)
+    return check_model(models[0], database, tolerant)["suspect"], registered(models)
+
+
+def _record_remap(s: Reconstruction, reason: str, linked: float, far: list, dropped: list, kept: str,
+                  scores: dict) -> None:
+    """``stats.json`` ``sequence`` of a run that mapped in capture order, and its log line."""
+    config = s.config.sequence
+    s.stats["sequence"] = sequence_record(
+        reason, linked, config, remapped=True, far_pairs=len(far), dropped=len(dropped),
+        dropped_pairs=listed_pairs(dropped, config.listed), kept=kept,
+        models={k: {"suspect": v[0], "registered": v[1]} for k, v in scores.items()})
+    logger.info("capture order: %s", sequence_line(s.stats["sequence"]))
 
 
 def record_principal_point(s: Reconstruction) -> None:

@@ -14,7 +14,7 @@ an order in which nearly every photo is verified with the next, they are mapped 
    and the whole model adjusted (loop closures and right far pairs tie the chain, its drift goes), as the
    hierarchical mapper's clusters are merged; no mapping of all the pairs at all, so no first model that
    look-alikes fold and no mapper trying initial pair after initial pair on wrong pairs. A chain that leaves
-   photos out, or a result the model check suspects, falls back to mapping all pairs.
+   photos out falls back to mapping all pairs; a result the model check suspects gives way to the chain alone.
    Without ``order_first``: all pairs are mapped first, and only a folded (``modelcheck``) or split model
    is mapped again in two passes, the chain and then all photos with the pairs kept.
 
