@@ -233,14 +233,14 @@ def test_global_descriptors_on_ray_identical_to_local(cluster, local_run, tmp_pa
 
 
 def _map_workers(ns: str) -> list[int]:
-    """PIDs of the extraction actors (process title ``ray::_StageActor...``) in the namespace."""
+    """PIDs of the run's actors (process title ``ray::_RunActor...``) in the namespace."""
     pids = []
     for pid in _namespace_pids(ns):
         try:
             title = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
         except OSError:
             continue
-        if title.startswith("ray::_StageActor"):
+        if title.startswith("ray::_RunActor"):
             pids.append(pid)
     return pids
 
@@ -301,8 +301,8 @@ def _workers_of(raylet: int) -> list[tuple[int, bool]]:
             title = Path(f"/proc/{child}/cmdline").read_bytes()
         except OSError:
             continue
-        if title.startswith(b"ray::_StageActor"):
-            found.append((int(child), title.startswith(b"ray::_StageActor.__call__")))
+        if title.startswith(b"ray::_RunActor"):
+            found.append((int(child), title.startswith(b"ray::_RunActor.__call__")))
     return found
 
 
@@ -499,10 +499,11 @@ def test_reconstruct_on_ray(cluster, tmp_path):
     for src in sorted(fountain.iterdir())[:5]:
         (images / src.name).symlink_to(src)
     out = tmp_path / "out"
-    run = subprocess.run(_ray_cli(cluster, "reconstruct", str(images), "-o", str(out), "--resize-max", "640",
-                                  "--no-progress", *SMALL_CLUSTERS), check=False, capture_output=True, text=True,
-                         timeout=600)
+    run = _run_watching_actors(cluster[0], _ray_cli(cluster, "reconstruct", str(images), "-o", str(out),
+                                                    "--resize-max", "640", "--no-progress", *SMALL_CLUSTERS))
     assert run.returncode == 0, run.stderr[-3000:]
+    # The run's actors serve every stage: two CPUs, two actor processes for the whole run (not two per stage).
+    assert 1 <= len(run.actors) <= 2, run.actors
     assert re.search(r"Ray: 5 imgs in ", run.stderr), run.stderr[-2000:]
     assert re.search(r"Ray: 10 pairs in ", run.stderr), run.stderr[-2000:]
     assert run.stderr.count("Ray: connected to the cluster") == 1  # one connection for both stages
@@ -534,6 +535,28 @@ def test_reconstruct_on_ray(cluster, tmp_path):
              for m in (ray_model, local_model)]
     assert poses[0].keys() == poses[1].keys() and all(np.allclose(poses[0][k], poses[1][k], atol=1e-6)
                                                        for k in poses[0])
+
+
+def _run_watching_actors(ns: str, command: list[str], timeout: float = 600) -> subprocess.CompletedProcess:
+    """Run ``command``; the result's ``actors``: the PIDs of every ``_RunActor`` process the namespace had meanwhile
+    (looked at every 0.1 s)."""
+    seen: set[int] = set()
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        driver = subprocess.Popen(command, stdout=out, stderr=err)
+        deadline = time.monotonic() + timeout
+        while driver.poll() is None:
+            seen.update(_map_workers(ns))
+            if time.monotonic() > deadline:
+                driver.kill()
+                break
+            time.sleep(0.1)
+        driver.wait()
+        out.seek(0)
+        err.seek(0)
+        run = subprocess.CompletedProcess(command, driver.returncode, out.read().decode(errors="replace"),
+                                          err.read().decode(errors="replace"))
+    run.actors = seen
+    return run
 
 
 def _verified(database: Path) -> list:

@@ -88,13 +88,15 @@ class LocalExecutor:
 
 class RayExecutor:
     """Runs stages on a Ray cluster; connects at the first stage with work (not for a run with nothing to do)
-    and, if it connected (or started a local cluster), disconnects when the block ends."""
+    and, if it connected (or started a local cluster), disconnects when the block ends. Its actors
+    (``ray_pool.RunActors``) start at the first stage and serve every stage until the block ends."""
 
     name = "ray"
 
     def __init__(self, options: RayOptions | None = None):
         self.options = options or RayOptions()
         self.ray, self.owned = None, False
+        self.actors = None
         self.places: list[str] = []
 
     @property
@@ -105,26 +107,30 @@ class RayExecutor:
         return self
 
     def __exit__(self, *exc) -> None:
+        if self.actors is not None:
+            self.actors.stop()
         if self.owned:
             self.ray.shutdown()
-        self.ray, self.owned = None, False
+        self.ray, self.owned, self.actors = None, False, None
 
     def run(self, stage: Stage, parts: partstore.PartStore, on_error: OnError, *, progress: bool = True,
             attrs: Attrs | None = None) -> int:
         """As ``LocalExecutor.run``, the computation on the cluster; the driver may copy results into the output as
         they arrive (``driver_merges_while_running``)."""
-        from .ray_run import run_on_ray  # Ray's imports only for a run on Ray
+        from .ray_pool import RunActors  # Ray's imports only for a run on Ray
+        from .ray_run import _RunActor, run_on_ray
 
         merge = None
         try:
             if stage.batches:
                 if self.ray is None:
                     self.ray, self.owned = _connect(self.options)
+                    self.actors = RunActors(self.ray, _RunActor, self.options)
                 if driver_merges_while_running(self.options):
                     merge = partstore.Merge(stage.output, parts, stage.write_group)  # fed as chunks arrive
                     logger.info("Ray: the driver copies the workers' results into the output as they arrive")
                 workers = run_on_ray(self.ray, stage, parts, on_error, options=self.options, progress=progress,
-                                     merge=merge)
+                                     merge=merge, actors=self.actors)
                 self.places.append(f"Ray: {workers} workers")
             return _finish(stage, parts, attrs, merge)
         finally:

@@ -50,27 +50,55 @@ def _workers(ray, options: RayOptions) -> int:
     return max(1, min(options.workers or fit, fit))
 
 
-@contextmanager
-def _stream(ray, tasks: list[dict[str, np.ndarray]], actor: type, args: tuple, workers: int,
-            options: RayOptions) -> Iterator[Iterator[dict]]:
-    """Start ``workers`` actors of class ``actor`` (built with ``args``); gives their results over ``tasks`` as they
-    finish (any order).
+class RunActors:
+    """The Ray actors of one run: started at the first stage with work, kept for every later stage, stopped at the end.
 
-    Leaving the context stops the actors, which frees their CPUs and GPUs for the next stage
-    of the same connection (one RayExecutor per run).
+    An actor's process imports torch and sekd and joins the cluster once per run, not once per stage: with an
+    actor pool per stage, a two-raylet ``sekd reconstruct`` paid ~4 s of start-up at each of its six spread
+    stages (docs/cluster.md). Each actor is a
+    ``host`` (a class built with the thread count, called with a task) that builds a stage's worker from the
+    task itself (``ray_run._RunActor``). A killed actor process is restarted (its constructor runs again)
+    whenever the cluster has room; its unfinished calls fail at once (no retries at the same actor) and go to
+    whichever actor is free (``_pool_results``): a node that leaves for good holds nothing up.
     """
-    # A killed worker process is restarted (its constructor runs again) whenever the cluster has
-    # room; its unfinished calls fail at once (no retries at the same actor) and go to whichever
-    # worker is free (_pool_results): a node that leaves for good holds nothing up.
-    actor_class = ray.remote(actor).options(num_cpus=options.threads_per_worker,
-                                            num_gpus=options.gpus_per_worker or None,
-                                            max_restarts=-1, max_task_retries=0)
-    actors = [actor_class.remote(*args) for _ in range(workers)]
+
+    def __init__(self, ray, host: type, options: RayOptions):
+        self.ray = ray
+        self.host_class = ray.remote(host).options(num_cpus=options.threads_per_worker,
+                                                   num_gpus=options.gpus_per_worker or None,
+                                                   max_restarts=-1, max_task_retries=0)
+        self.threads = options.threads_per_worker
+        self.actors: list = []
+
+    def first(self, count: int) -> list:
+        """The first ``count`` actors, started now if fewer are running."""
+        while len(self.actors) < count:
+            self.actors.append(self.host_class.remote(self.threads))
+        return self.actors[:count]
+
+    def release(self) -> None:
+        """Tell every actor to drop the stage it built (its model, caches, GPU memory); does not wait."""
+        for actor in self.actors:
+            actor.release.remote()
+
+    def stop(self) -> None:
+        """Stop every actor, which frees their CPUs and GPUs."""
+        for actor in self.actors:
+            self.ray.kill(actor)
+        self.actors = []
+
+
+@contextmanager
+def _stream(actors: RunActors, tasks: list[dict], workers: int) -> Iterator[Iterator[dict]]:
+    """The results over ``tasks`` (any order) from the run's first ``workers`` actors; each actor drops the stage
+    when the block ends (kept for the next stage). A block left by an error or Ctrl-C stops the actors instead:
+    the tasks they still hold must not write on while the run fails or the next stage begins."""
     try:
-        yield _pool_results(ray, actors, tasks, _warn_worker_lost)
-    finally:
-        for one in actors:
-            ray.kill(one)
+        yield _pool_results(actors.ray, actors.first(workers), tasks, _warn_worker_lost)
+    except BaseException:
+        actors.stop()
+        raise
+    actors.release()
 
 
 def _warn_worker_lost(reason: str) -> None:

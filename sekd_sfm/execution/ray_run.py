@@ -8,9 +8,9 @@ Division of labour:
   chunk file holding them) and the failures: a few hundred bytes, not the arrays. At the end
   it checks that every chunk reported is visible to it and merges them into the HDF5 file
   (``partstore.merge_parts``, as a local run does);
-* each **actor** (``_StageActor``) builds the stage's worker once, with the run's thread
-  count, and then computes task after task: the same worker class, called on the same
-  batches, as a local run. It writes each task's results as one chunk of the output's part
+* each **actor** (``_RunActor``, started once per run and kept for every stage) builds the
+  stage's worker (``_StageActor``) once, with the run's thread count, and then computes task
+  after task: the same worker class, called on the same batches, as a local run. It writes each task's results as one chunk of the output's part
   store (``<output>.parts/``: temporary name + rename, the chunk name carrying the Ray node
   id and the PID) *before* the task returns, so every node must see the same files (shared
   storage). A key reported to the driver is on disk. A worker process killed mid-run
@@ -48,7 +48,7 @@ from ..files import partstore, shards
 from ..files.atomic import write_atomic
 from ..runtime import set_num_threads
 from .ray_connect import RayOptions, _free_cores_here
-from .ray_pool import _columns, _stream, _workers, task_size
+from .ray_pool import RunActors, _columns, _stream, _workers, task_size
 from .stage import OnError, Result, Stage, Worker, calls
 
 logger = logging.getLogger("sekd")
@@ -58,12 +58,20 @@ BY_DRIVER = "@driver"
 
 
 def run_on_ray(ray, stage: Stage, parts: partstore.PartStore, on_error: OnError, *, options: RayOptions,
-               progress: bool = True, merge: partstore.Merge | None = None) -> int:
+               progress: bool = True, merge: partstore.Merge | None = None, actors: RunActors | None = None) -> int:
     """Compute ``stage.batches`` on the connected cluster into ``parts`` (or shards); ``on_error`` for failed items.
     Returns the workers it used.
 
-    ``merge``: a merge of the output begun for this run, fed with each task's chunk as it arrives.
+    ``merge``: a merge of the output begun for this run, fed with each task's chunk as it arrives. ``actors``: the
+    run's actors (``RayExecutor``), kept after this stage; None: actors of this stage's own, stopped after it.
     """
+    if actors is None:
+        actors = RunActors(ray, _RunActor, options)
+        try:
+            return run_on_ray(ray, stage, parts, on_error, options=options, progress=progress, merge=merge,
+                              actors=actors)
+        finally:
+            actors.stop()
     keys = stage.keys
     if not keys:
         return 0
@@ -82,9 +90,13 @@ def run_on_ray(ray, stage: Stage, parts: partstore.PartStore, on_error: OnError,
         args = (stage.worker, stage.args, options.threads_per_worker, str(Path(stage.output).resolve()),
                 stage.write_group, "virtual" if virtual else "copy", str(claims.resolve()) if helper else "",
                 stage.joinable)
+        # The stage's arguments go to the object store once; each task names them (a reference in a list, which Ray
+        # does not resolve), and an actor fetches them when the stage's first task reaches it.
+        handle = (uuid.uuid4().hex, [ray.put(args)])
+        tasks = [{**task, "stage": handle} for task in tasks]
         shard_meta: dict[str, dict] = {}
         try:
-            with _stream(ray, tasks, _StageActor, args, workers, options) as results:
+            with _stream(actors, tasks, workers) as results:
                 _drain(results, stage, len(keys), parts, on_error, progress,
                        shards.shard_root(stage.output) if virtual else None, shard_meta, helper, merge)
         finally:  # also when interrupted: the merge then references these shards without opening them
@@ -245,6 +257,33 @@ class _StageActor:
                 else:
                     done.append((key, arrays))
         return done, errors
+
+
+class _RunActor:
+    """A Ray actor kept for a whole run (``ray_pool.RunActors``): computes any stage's tasks.
+
+    A task names its stage (``task["stage"]``: an id and a reference to the ``_StageActor`` arguments); the
+    first task of a stage builds that stage's ``_StageActor``, replacing the previous stage's, and the stage's
+    later tasks reuse it. A restarted actor process builds it again from its next task.
+    """
+
+    def __init__(self, threads: int):
+        set_num_threads(threads)
+        self.stage_id, self.stage = "", None
+
+    def __call__(self, task: dict) -> dict[str, np.ndarray]:
+        stage_id, (arguments,) = task["stage"]
+        if stage_id != self.stage_id:
+            import ray
+
+            self.release()  # the previous stage's worker first: never two models at once
+            self.stage = _StageActor(*ray.get(arguments))
+            self.stage_id = stage_id
+        return self.stage(task)
+
+    def release(self) -> None:
+        """Drop the stage's worker (its model, caches, GPU memory)."""
+        self.stage_id, self.stage = "", None
 
 
 def _split(keys: list[str], numbers: Iterable, skip: set[str]) -> list[list[str]]:
