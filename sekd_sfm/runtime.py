@@ -196,6 +196,13 @@ def source_commit() -> str:
         return ""
 
 
+def cpu_text(cpu) -> str:
+    """A ``cpu_description()`` (as a record keeps it) in a few words: model, torch's kernels, cores."""
+    if not isinstance(cpu, dict):
+        return str(cpu)
+    return f"{cpu.get('model', '?')}, {cpu.get('torch_kernels', '?')}, {cpu.get('cores', '?')} cores"
+
+
 def run_record() -> dict:
     """What every benchmark result records, so no table mixes machines or versions silently: the sekd version, the
     source commit, the CPU (model, features, torch's kernels, cores), the command line and the date."""

@@ -473,9 +473,24 @@ def test_bench_scale_end_to_end_and_resume(tmp_path, shared):
         assert {"extract", "match", "verify", "map"} <= set(p["stages"])
     assert row["pairs"]["recall"] == 1.0  # 12 photos: every pair is matched
     assert "| 12 | ours |" in result.output and (tmp_path / "scale.png").is_file()
+    run = row["run"]  # each size records where and with what it ran, and the table says so
+    assert run["cpu"]["model"] and run["sekd_sfm"] and run["command"] and run["date"]
+    assert f"N = 12 on {run['cpu']['model']}, " in (tmp_path / "results.md").read_text()
     stamp = (tmp_path / "n12/result.json").stat().st_mtime_ns
     again = CliRunner().invoke(sekd, args)
     assert again.exit_code == 0 and (tmp_path / "n12/result.json").stat().st_mtime_ns == stamp
+
+
+def test_a_table_of_sizes_from_two_machines_names_both():
+    from sekd_sfm.bench.scale.run import run_lines
+
+    epyc = {"model": "AMD EPYC", "torch_kernels": "AVX2", "cores": 2}
+    runs = [{"size": 250, "run": {"cpu": epyc, "commit": "abc", "sekd_sfm": "0.2.0"}},
+            {"size": 500, "run": {"cpu": epyc, "commit": "abc", "sekd_sfm": "0.2.0"}},
+            {"size": 1000, "run": {"cpu": "Intel Xeon", "commit": "def", "sekd_sfm": "0.2.0"}},
+            {"size": 2000}]  # measured before sizes recorded their run
+    assert run_lines(runs) == ["N = 250, 500 on AMD EPYC, AVX2, 2 cores, sekd 0.2.0 at commit abc",
+                               "N = 1000 on Intel Xeon, sekd 0.2.0 at commit def"]
 
 
 def test_retrieval_finds_the_true_neighbours_of_a_generated_street(tmp_path, shared):

@@ -22,7 +22,7 @@ from ...files.atomic import write_json
 from ...pipelines.reconstruct import ReconstructConfig, reconstruct
 from ...pipelines.record import Record
 from ...pipelines.triangulate import TriangulateConfig, triangulate, triangulation_stats
-from ...runtime import package_versions, run_record
+from ...runtime import cpu_text, package_versions, run_record
 from ...stages.colmap import require_pycolmap
 from ..sfm import evaluate, resolve_scene
 
@@ -124,12 +124,6 @@ def _copy_inputs(source: Path, target: Path, names: tuple[str, str]) -> None:
         shutil.copy(source / name, target / name)
 
 
-def _cpu(cpu) -> str:
-    if not isinstance(cpu, dict):
-        return str(cpu)
-    return f"{cpu.get('model', '?')}, {cpu.get('torch_kernels', '?')}, {cpu.get('cores', '?')} cores"
-
-
 def _fmt(value, digits: int = 3) -> str:
     return "-" if value is None or (isinstance(value, float) and np.isnan(value)) else f"{value:,.{digits}f}"
 
@@ -139,7 +133,7 @@ def triangulation_markdown(report: dict) -> str:
     record = report["record"]
     lines = [(f"# Triangulation from known poses: {Path(report['scene']).name} ({report['images']} photos, "
               f"long side {report['resize_max']} px)"), "",
-             f"sekd {record['sekd_sfm']} ({record['commit']}), {record['date']}, {_cpu(record['cpu'])}", "",
+             f"sekd {record['sekd_sfm']} ({record['commit']}), {record['date']}, {cpu_text(record['cpu'])}", "",
              ("| run | pairs | photos with points | points | observations | mean track | median track "
               "| mean reproj. (px) | median rot. err. (deg) | median transl. err. (deg) | triangulation / mapping (s) "
               "| wall (s) |"),

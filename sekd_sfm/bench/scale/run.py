@@ -483,10 +483,11 @@ def run_scale_benchmark(output_dir: str | Path, config: ScaleConfig, reconstruct
             if previous:
                 logger.info("n=%d: our pipeline's settings changed since %s; it reruns", size, done)
             result = run_size(folder, size, config, reconstruct_config, previous)
-            from ...runtime import package_versions
+            from ...runtime import package_versions, run_record
 
             result["settings"] = {**asdict(replace(config, sizes=tuple(config.sizes))), "versions": package_versions(),
                                   "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+            result["run"] = run_record()  # commit, version, CPU, command: no table mixes machines silently
             write_atomic(done, json.dumps(result, indent=1, default=str))
     return write_report(out)
 
@@ -582,6 +583,9 @@ def scale_markdown(report: dict) -> str:
               if r.get("ours", {}).get("features")]
     if models:
         lines += ["", "SEKD weights of our pipeline: " + ", ".join(models) + "."]
+    runs = run_lines(report["results"])
+    if runs:
+        lines += ["", "Measured: " + "; ".join(runs) + "."]
     lines += ["", "Per stage: wall time (s) / CPU time (s) / peak RSS (MB) / bytes written (MB).", "",
               "| N | pipeline | " + " | ".join(STAGES) + " |", "|---|---|" + "---|" * len(STAGES)]
     for r in report["results"]:
@@ -603,6 +607,21 @@ def scale_markdown(report: dict) -> str:
             lines.append(f"| {name} | {label} | " + " | ".join(_f(fitted.get(s), 2) for s in (*STAGES[1:], "total"))
                          + " |")
     return "\n".join(lines) + "\n"
+
+
+def run_lines(results: list[dict]) -> list[str]:
+    """Where and with what each size ran (``result["run"]``, ``runtime.run_record``): one phrase per machine, commit
+    and version, naming its sizes, so a table whose sizes ran on different machines or commits says so."""
+    from ...runtime import cpu_text
+
+    groups: dict[tuple, list[int]] = {}
+    for r in results:
+        run = r.get("run")
+        if run:
+            groups.setdefault((cpu_text(run.get("cpu", "?")), run.get("commit") or "?", run.get("sekd_sfm", "?")),
+                              []).append(r["size"])
+    return [f"N = {', '.join(map(str, sizes))} on {cpu}, sekd {version} at commit {commit}"
+            for (cpu, commit, version), sizes in groups.items()]
 
 
 def plot_scale(report: dict, path: Path) -> Path:
