@@ -114,6 +114,21 @@ def test_a_chain_that_leaves_photos_out_falls_back_to_all_pairs(tmp_path):
     assert pycolmap.Reconstruction(str(model)).num_reg_images() >= RING // 2
 
 
+def test_a_long_capture_maps_all_pairs_first_and_the_order_unfolds_it(tmp_path):
+    """Above ``order_first_max_photos`` the chain is not mapped first (its drift would drop true loop-closing pairs):
+    all pairs are mapped, the look-alikes fold the model, and the capture order maps it again afterwards."""
+    views = twin_ring(np.random.default_rng(3))
+    images, out = write_scene(tmp_path / "scene", views, SIFT)
+    config = ReconstructConfig(features=SIFT, camera=CALIBRATED)
+    config.sequence.order_first_max_photos = RING - 1
+    model = reconstruct(images, out, config, progress=False)
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["sequence"]["reason"] == "folded" and stats["sequence"]["remapped"]
+    assert "capture order" in stats["timings_s"]  # the step after mapping all pairs
+    assert pycolmap.Reconstruction(str(model)).num_reg_images() == RING
+    assert max(rotation_errors(views, model)) < 1.0
+
+
 def test_when_the_far_pairs_fold_the_closed_model_the_chain_alone_is_kept(tmp_path, monkeypatch):
     """The closed model judged folded (as on a mirror-symmetric walk, whose far mirror pairs fit the chain): the
     chain is kept, adjusted and filtered over its own pairs, and the database holds only those."""

@@ -43,6 +43,12 @@ class SequenceConfig:
     #: An ordered capture is mapped in capture order from the start (module doc, step 3), not only after all
     #: pairs gave a folded or split model.
     order_first: bool = True
+    #: ... up to this many photos (those with a verified pair). Over a longer chain the drift makes the true pairs
+    #: that close a loop look unfit, and they would be dropped: a generated 1,000-photo walk mapped in order lost
+    #: its 29 strongest loop-closing pairs (up to 900 inliers) and bent, pose AUC@5 0.783 where all pairs at once
+    #: gave 0.968 (docs/experiments.md, section 39). Above it all pairs are mapped first and a folded or split model
+    #: is mapped again in capture order afterwards, as with ``order_first`` off.
+    order_first_max_photos: int = 250
     #: Photos at most this far apart in the capture order are mapped first (the chain).
     window: int = 3
     #: The photos count as an ordered capture when at least this share of consecutive photos (those with a
