@@ -149,7 +149,8 @@ capture_order_option = click.option(
     help="When the photos' names give an order in which nearly every photo is verified with the next (a walk, a "
          "turntable, a video's keyframes): map in that order, first the photos at most 3 apart (a chain), then drop "
          "the farther pairs that do not fit its poses and triangulate the rest onto them. Look-alikes far apart in a "
-         "capture then cannot fold the model. Photos in no order are mapped all at once (a folded model is "
+         "capture then cannot fold the model. Above 250 photos all pairs are mapped first and only a folded or split "
+         "model is mapped again in order. Photos in no order are mapped all at once (a folded model is "
          "reported). stats.json sequence lists the drops.")
 
 
