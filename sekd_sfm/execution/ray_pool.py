@@ -56,9 +56,10 @@ class RunActors:
     An actor's process imports torch and sekd and joins the cluster once per run, not once per stage: with an
     actor pool per stage, a two-raylet ``sekd reconstruct`` paid ~4 s of start-up at each of its six spread
     stages (docs/cluster.md). Each actor is a ``host`` (a class built with the thread count, called with a
-    task) that builds a stage's worker from the task itself (``ray_run._RunActor``). A killed actor process is restarted (its constructor runs again)
-    whenever the cluster has room; its unfinished calls fail at once (no retries at the same actor) and go to
-    whichever actor is free (``_pool_results``): a node that leaves for good holds nothing up.
+    task) that builds a stage's worker from the task itself (``ray_run._RunActor``). A killed actor process
+    is restarted (its constructor runs again) whenever the cluster has room; its unfinished calls fail at once
+    (no retries at the same actor) and go to whichever actor is free (``_pool_results``): a node that leaves
+    for good holds nothing up.
     """
 
     def __init__(self, ray, host: type, options: RayOptions):

@@ -10,7 +10,8 @@ Division of labour:
   (``partstore.merge_parts``, as a local run does);
 * each **actor** (``_RunActor``, started once per run and kept for every stage) builds the
   stage's worker (``_StageActor``) once, with the run's thread count, and then computes task
-  after task: the same worker class, called on the same batches, as a local run. It writes each task's results as one chunk of the output's part
+  after task: the same worker class, called on the same batches, as a local run. It writes
+  each task's results as one chunk of the output's part
   store (``<output>.parts/``: temporary name + rename, the chunk name carrying the Ray node
   id and the PID) *before* the task returns, so every node must see the same files (shared
   storage). A key reported to the driver is on disk. A worker process killed mid-run
