@@ -40,10 +40,18 @@ logger = logging.getLogger("sekd")
 
 def order_first(s: Reconstruction) -> bool:
     """Whether the photos are mapped in capture order from the start (``SequenceConfig.order_first``): free photos
-    (no rigs, no panoramas) and a mapper that triangulates incrementally (not the global one)."""
+    (no rigs, no panoramas), a mapper that triangulates incrementally (not the global one), and at most
+    ``order_first_max_photos`` photos with a verified pair (a longer chain drifts beyond the far-pair check)."""
     config = s.config.sequence
-    return (config.enabled and config.order_first and not s.rigs and not s.panoramas
-            and mapper_type_of(s.options) != "global")
+    if not (config.enabled and config.order_first and not s.rigs and not s.panoramas
+            and mapper_type_of(s.options) != "global"):
+        return False
+    photos = _photos_with_pairs(s)
+    if photos > config.order_first_max_photos:
+        logger.info("capture order: %d photos, more than %d: all pairs mapped first (the order only for a model that "
+                    "folds or splits)", photos, config.order_first_max_photos)
+        return False
+    return True
 
 
 def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: dict) -> list | None:
@@ -52,14 +60,10 @@ def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: d
     models (largest first), ``s.database`` replaced by the pairs they were made from. None when the photos are no
     ordered capture or the chain leaves photos out: then all pairs are mapped at once."""
     config = s.config.sequence
-    photos = _photos_with_pairs(s)
-    if photos > config.order_first_max_photos:
-        logger.info("capture order: %d photos, more than %d: all pairs mapped first (the order only for a model that "
-                    "folds or splits)", photos, config.order_first_max_photos)
-        return None
     linked = linked_share(verified_pairs(s.database, min_num_matches(s.options)))
     if linked < config.min_linked:
         return None
+    photos = _photos_with_pairs(s)
     scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
     try:
         chain_db, closed_db = scratch / "chain.db", scratch / "closed.db"
