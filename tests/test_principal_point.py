@@ -132,6 +132,24 @@ def test_a_large_model_is_judged_on_a_sample_then_refined_whole():
     assert record["reason"].endswith("(measured on 10 of the 30 photos)")
 
 
+def test_the_sample_drops_a_point_left_in_one_photo():
+    # A merged track may see one photo twice; with its other photos sampled away it has no depth, and the
+    # sample's adjustment ran away with it (1e154 px on a 1,000-photo walk).
+    model = mapped_model(WIDE, 200.0, (172.0, 112.0))
+    free = [model.image(1).points2D[k].point3D_id for k in (0, 1)]
+    for point_id in free:
+        model.delete_point3D(point_id)
+    track = pycolmap.Track()
+    for image_id, k in ((1, 0), (1, 1), (7, 0)):  # photo 7 is not in the 6-photo sample (1, 3, 5, 8, 10, 12)
+        track.add_element(image_id, k)
+    twice = model.add_point3D(model.point3D(min(model.point3D_ids())).xyz, track)
+    sample = pp._evenly_spaced(model, 6)
+    assert sorted(sample.reg_image_ids()) == [1, 3, 5, 8, 10, 12]
+    assert not sample.exists_point3D(twice)
+    assert all(len({e.image_id for e in p.track.elements}) >= 2 for p in sample.points3D.values())
+    assert sample.num_points3D() == model.num_points3D() - 1
+
+
 def test_a_failing_test_keeps_the_mapped_models(tmp_path, monkeypatch):
     monkeypatch.setattr(pp, "COMMAND", [sys.executable, "-c", "import sys; sys.exit('no memory left')"])
     plan = pp.PrincipalPointPlan("auto", "fixed", "fixed while mapping", test=True)

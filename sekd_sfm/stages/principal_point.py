@@ -298,7 +298,7 @@ def _state(reconstruction) -> dict:
 
 def _evenly_spaced(reconstruction, count: int):
     """A copy of ``reconstruction`` with ``count`` of its registered photos, evenly spaced in image-id order
-    (the others' frames removed, with their observations and the points left with fewer than two)."""
+    (the others' frames removed, with their observations and the points left in fewer than two photos)."""
     import pycolmap
 
     sample = pycolmap.Reconstruction(reconstruction)
@@ -307,6 +307,10 @@ def _evenly_spaced(reconstruction, count: int):
     for frame_id in {sample.image(i).frame_id for i in ids} - keep:
         sample.deregister_frame(frame_id)
     sample.tear_down()  # drops the unregistered frames and images (the covariance reads every frame's pose)
+    # A merged track may hold two observations in one photo; left with only those, its point has no depth and the
+    # adjustment runs away with it (a 1,000-photo walk: 1e154 px, 101 iterations without converging).
+    for point_id in [i for i, p in sample.points3D.items() if len({e.image_id for e in p.track.elements}) < 2]:
+        sample.delete_point3D(point_id)
     return sample
 
 
