@@ -27,7 +27,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import math
 import os
 import shutil
 import time
@@ -42,6 +41,7 @@ from ...files.atomic import write_atomic
 from ...files.locking import exclusive_lock
 from ..plotting import save_png
 from .measure import Measurement, run_measured
+from .projection import growth_exponent, project, projection_markdown
 from .scene import SceneConfig, generate_scene, read_covisibility, read_scene
 
 logger = logging.getLogger("sekd")
@@ -505,15 +505,6 @@ def load_results(out: Path) -> list[dict]:
     return sorted(results, key=lambda r: r["size"])
 
 
-def growth_exponent(sizes: list[int], values: list[float]) -> float | None:
-    """Slope of log(value) against log(size) by least squares; None with fewer than 2 positive points."""
-    points = [(math.log(s), math.log(v)) for s, v in zip(sizes, values) if v and v > 0]
-    if len(points) < 2 or len({p[0] for p in points}) < 2:
-        return None
-    x, y = np.array(points).T
-    return float(np.polyfit(x, y, 1)[0])
-
-
 def exponents(results: list[dict], pipeline: str, key: str = "time_s") -> dict[str, float | None]:
     """Growth exponent of each stage's wall time (``key`` "time_s") or CPU time ("cpu_s"), and of the total."""
     rows = [r for r in results if pipeline in r]
@@ -532,7 +523,8 @@ def write_report(out: Path) -> Path:
     results = load_results(out)
     report = {"sizes": [r["size"] for r in results], "results": results,
               "exponents": {p: exponents(results, p) for p in ("ours", "pycolmap")},
-              "cpu_exponents": {p: exponents(results, p, "cpu_s") for p in ("ours", "pycolmap")}}
+              "cpu_exponents": {p: exponents(results, p, "cpu_s") for p in ("ours", "pycolmap")},
+              "projection": project(results, STAGES[1:])}
     path = out / "results.json"
     write_atomic(path, json.dumps(report, indent=1, default=str))  # two runs may finish sizes at once
     write_atomic(out / "results.md", scale_markdown(report))
@@ -606,7 +598,8 @@ def scale_markdown(report: dict) -> str:
         for name, fitted in report.get(key, {}).items():
             lines.append(f"| {name} | {label} | " + " | ".join(_f(fitted.get(s), 2) for s in (*STAGES[1:], "total"))
                          + " |")
-    return "\n".join(lines) + "\n"
+    projected = projection_markdown(report.get("projection"), STAGES[1:])
+    return "\n".join(lines + ([""] + projected if projected else [])) + "\n"
 
 
 def run_lines(results: list[dict]) -> list[str]:
