@@ -42,10 +42,11 @@ def test_a_stage_of_one_size_is_carried_linearly_and_named():
     first, second = _size(1000, 100.0, 10.0, 5.0), _size(2000, 200.0, 20.0, 10.0)
     second["ours"]["stages"]["refine"] = {"time_s": 30.0}      # a stage the smaller run did not have
     p = project([first, second], ("extract", "refine"), sizes=(4000,))
+    assert list(p["exponents"]) == ["extract", "refine", "match", "map"]  # the stages outside the order follow
     assert p["linear"] == ["refine"] and p["projected"][4000]["refine"] == pytest.approx(60.0)
-    text = "\n".join(projection_markdown(p, ("extract", "refine")))
+    text = "\n".join(projection_markdown(p))
     assert "Carried linearly (one size only): refine." in text
-    assert "| 4,000 | 400 | 60 | 460 | 0.1 |" in text
+    assert "| 4,000 | 400 | 60 | 40 | 20 | 520 | 0.1 |" in text
 
 
 def test_the_scale_report_ends_with_the_projection():

@@ -56,6 +56,8 @@ def project(results: list[dict], stages: tuple[str, ...], sizes: tuple[int, ...]
             pipeline: str = "ours", key: str = "time_s") -> dict | None:
     """Each stage's time (``key``: "time_s" wall or "cpu_s", seconds) projected to ``sizes`` photos.
 
+    ``stages`` orders the stages; those the largest size ran beyond them follow in its order.
+
     Returns ``{"from_sizes": [...], "exponents": {stage: b}, "projected": {N: {stage: s, ..., "total": s}}}``, or
     None with fewer than two sizes from one machine and commit. A stage measured at only one size, or whose fit
     fails, is carried linearly (b = 1) and named in ``"linear"``.
@@ -66,26 +68,27 @@ def project(results: list[dict], stages: tuple[str, ...], sizes: tuple[int, ...]
     measured = [r["size"] for r in rows]
     base = rows[-1]
     exponents, linear, projected = {}, [], {n: {} for n in sizes}
-    for stage in stages:
-        if stage not in base[pipeline]["stages"]:
-            continue
+    measured_stages = base[pipeline]["stages"]
+    # Every stage the largest size ran, ``stages``' order first: a step outside it (a model check, a remap in
+    # capture order) is time the collection costs as well.
+    for stage in [s for s in stages if s in measured_stages] + [s for s in measured_stages if s not in stages]:
         b = growth_exponent(measured, [r[pipeline]["stages"].get(stage, {}).get(key, 0) for r in rows])
         if b is None:
             b = 1.0
             linear.append(stage)
         exponents[stage] = round(b, 3)
         for n in sizes:
-            projected[n][stage] = base[pipeline]["stages"][stage].get(key, 0) * (n / base["size"]) ** b
+            projected[n][stage] = measured_stages[stage].get(key, 0) * (n / base["size"]) ** b
     for n in sizes:
         projected[n]["total"] = sum(projected[n].values())
     return {"from_sizes": measured, "key": key, "exponents": exponents, "linear": linear, "projected": projected}
 
 
-def projection_markdown(projection: dict | None, stages: tuple[str, ...]) -> list[str]:
+def projection_markdown(projection: dict | None) -> list[str]:
     """The report's lines for ``project``'s result: where it comes from, then one row per projected size."""
     if not projection:
         return []
-    shown = [s for s in stages if s in projection["exponents"]]
+    shown = list(projection["exponents"])
     what = "wall time" if projection["key"] == "time_s" else "CPU time"
     lines = [(f"Projected {what} (s) of our pipeline on larger collections: each stage's time at N = "
               f"{projection['from_sizes'][-1]} carried by its growth exponent fitted over N = "

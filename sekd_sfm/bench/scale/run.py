@@ -598,7 +598,7 @@ def scale_markdown(report: dict) -> str:
         for name, fitted in report.get(key, {}).items():
             lines.append(f"| {name} | {label} | " + " | ".join(_f(fitted.get(s), 2) for s in (*STAGES[1:], "total"))
                          + " |")
-    projected = projection_markdown(report.get("projection"), STAGES[1:])
+    projected = projection_markdown(report.get("projection"))
     return "\n".join(lines + ([""] + projected if projected else [])) + "\n"
 
 
