@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -114,14 +115,18 @@ def test_a_chain_that_leaves_photos_out_falls_back_to_all_pairs(tmp_path):
     assert pycolmap.Reconstruction(str(model)).num_reg_images() >= RING // 2
 
 
-def test_a_long_capture_maps_all_pairs_first_and_the_order_unfolds_it(tmp_path):
+def test_a_long_capture_maps_all_pairs_first_and_the_order_unfolds_it(tmp_path, caplog):
     """Above ``order_first_max_photos`` the chain is not mapped first (its drift would drop true loop-closing pairs):
     all pairs are mapped, the look-alikes fold the model, and the capture order maps it again afterwards."""
     views = twin_ring(np.random.default_rng(3))
     images, out = write_scene(tmp_path / "scene", views, SIFT)
     config = ReconstructConfig(features=SIFT, camera=CALIBRATED)
     config.sequence.order_first_max_photos = RING - 1
-    model = reconstruct(images, out, config, progress=False)
+    with caplog.at_level(logging.INFO, logger="sekd"):
+        model = reconstruct(images, out, config, progress=False)
+    # The remap is announced with its reason before it runs (it maps the collection twice more).
+    announced = [r.getMessage() for r in caplog.records if "mapping again in capture order" in r.getMessage()]
+    assert len(announced) == 1 and announced[0].startswith("capture order: the model looks folded (its largest of ")
     stats = json.loads((out / "stats.json").read_text())
     assert stats["sequence"]["reason"] == "folded" and stats["sequence"]["remapped"]
     assert "capture order" in stats["timings_s"]  # the step after mapping all pairs
