@@ -78,7 +78,8 @@ def scale(sizes, output, image_size, spacing, layout, hfov_deg, repeats, symmetr
     (look-alike facades far apart). Per size and stage (extract, pairs, match, refine, import, verify, map):
     wall time, peak RSS and bytes written; per pipeline: registered photos, registered
     distractors, models, pose AUC@5 and median errors against the true cameras; then the
-    growth exponent of each stage. Our pipeline runs with `sekd reconstruct`'s defaults unless
+    growth exponent of each stage and, once two sizes ran on one machine and commit, each
+    stage's time projected to 10,000 and 100,000 photos (a plan, not a measurement). Our pipeline runs with `sekd reconstruct`'s defaults unless
     --weights, --max-keypoints, --mapper-type, --mapper or --no-refine say otherwise.
     Finished sizes are skipped when the command is run again on the same folder with the
     same settings; with other settings of our pipeline, only ours reruns (pycolmap's run is

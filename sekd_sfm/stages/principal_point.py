@@ -308,7 +308,8 @@ def _evenly_spaced(reconstruction, count: int):
         sample.deregister_frame(frame_id)
     sample.tear_down()  # drops the unregistered frames and images (the covariance reads every frame's pose)
     # A merged track may hold two observations in one photo; left with only those, its point has no depth and the
-    # adjustment runs away with it (a 1,000-photo walk: 1e154 px, 101 iterations without converging).
+    # adjustment runs away with it (a 1,000-photo walk: one such point at 1e154 px, the test rejected for "no
+    # covariance").
     for point_id in [i for i, p in sample.points3D.items() if len({e.image_id for e in p.track.elements}) < 2]:
         sample.delete_point3D(point_id)
     return sample
