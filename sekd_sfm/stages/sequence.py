@@ -16,8 +16,9 @@ an order in which nearly every photo is verified with the next, they are mapped 
    look-alikes fold and no mapper trying initial pair after initial pair on wrong pairs. A chain that leaves
    photos out falls back to mapping all pairs; a result the model check suspects gives way to the chain alone.
    Only up to ``order_first_max_photos`` photos: over a longer chain the drift makes true loop closures fail
-   step 2. Without ``order_first``, and above that size: all pairs are mapped first, and only a folded (``modelcheck``) or split model
-   is mapped again in two passes, the chain and then all photos with the pairs kept.
+   step 2. Without ``order_first``, and above that size: all pairs are mapped first, and only a folded
+   (``modelcheck``) or split model is mapped again in two passes, the chain and then all photos with the pairs
+   kept.
 
 The pipeline keeps a model only when it is better (not folded, else more photos). Measured:
 docs/experiments.md, sections 35 and 38.

@@ -14,6 +14,8 @@ import math
 
 import numpy as np
 
+from ...runtime import cpu_text
+
 #: The collection sizes every report projects to (photos).
 PROJECTED_SIZES = (10_000, 100_000)
 
@@ -28,16 +30,10 @@ def growth_exponent(sizes: list[int], values: list[float]) -> float | None:
 
 
 def _run_key(result: dict) -> tuple:
-    """The machine and commit a size ran on (``result["run"]``, ``runtime.run_record``); () when not recorded."""
+    """The machine and commit a size ran on (``result["run"]``, ``runtime.run_record``); () when not recorded.
+    The machine as the report's "Measured:" line names it (``runtime.cpu_text``), so both group sizes alike."""
     run = result.get("run") or {}
-    return (_cpu_key(run.get("cpu")), run.get("commit")) if run else ()
-
-
-def _cpu_key(value) -> str:
-    """A hashable, order-independent text of a recorded value (a CPU record is a dict or, older, a string)."""
-    if isinstance(value, dict):
-        return ";".join(f"{k}={value[k]}" for k in sorted(value))
-    return str(value)
+    return (cpu_text(run.get("cpu", "?")), run.get("commit")) if run else ()
 
 
 def same_run_sizes(results: list[dict], pipeline: str = "ours") -> list[dict]:
