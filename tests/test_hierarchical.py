@@ -25,6 +25,7 @@ from sekd_sfm.execution import LocalExecutor
 from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
 from sekd_sfm.stages import cluster_merge, hierarchical
 from sekd_sfm.stages.colmap import require_pycolmap
+from sekd_sfm.stages.mapper_worker import bundle_adjust_merged
 from sekd_sfm.stages.mapping import mapper_options, run_mapper
 from sekd_sfm.stages.partition import ClusterOptions, partition, view_graph
 
@@ -170,3 +171,43 @@ def test_photos_of_a_camera_rig_are_not_cut_apart(arc_scene, tmp_path):
         db.execute("UPDATE frame_data SET frame_id = 1 WHERE data_id = 2")
         db.commit()
     assert not hierarchical.can_map_clusters(rig)  # pycolmap's hierarchical mapper keeps the frame whole
+
+
+def _drifted_piece(arc_scene, degrees: float) -> tuple[cluster_merge.Piece, dict[str, int]]:
+    """The arc's true poses as one merged piece whose second half drifted: turned by ``degrees`` about the
+    centre of the last photo of the first half (a seam between two clusters), and the photo ids by name."""
+    _, database, truth = arc_scene
+    with contextlib.closing(sqlite3.connect(database)) as db:
+        ids = dict(db.execute("SELECT name, image_id FROM images"))
+    names = sorted(truth)
+    seam = cluster_merge.centers([truth[names[VIEWS // 2 - 1]]])[0]
+    turn = Rotation.from_euler("x", degrees, degrees=True).as_matrix()  # across the epipolar lines: no depth absorbs it
+    poses = {ids[n]: truth[n] if k < VIEWS // 2 else cluster_merge.moved(truth[n], 1.0, turn, seam - turn @ seam)
+             for k, n in enumerate(names)}
+    return cluster_merge.Piece(poses), ids
+
+
+def _points_across(model, first: set[int]) -> int:
+    """Points seen both by a photo of ``first`` (ids) and by another photo."""
+    return sum(1 for point in model.points3D.values()
+               if len({e.image_id in first for e in point.track.elements}) == 2)
+
+
+def test_a_seam_where_two_clusters_drifted_apart_is_closed_by_the_merge(arc_scene, tmp_path):
+    images, database, truth = arc_scene
+    piece, ids = _drifted_piece(arc_scene, 2.0)  # ~17 px at the seam (focal length 500 px)
+    first = {ids[n] for n in sorted(truth)[:VIEWS // 2]}
+    options = mapper_options(OPTIONS, mapper_type="hierarchical").incremental_options
+    model = cluster_merge.assemble(piece, str(database), str(images), options, tmp_path / "merge", pycolmap)
+    assert _points_across(model, first) > 100  # tracks cross the seam despite its ~17 px (none did at 4 px)
+    bundle_adjust_merged(model, 1, pycolmap)  # noqa
+    found = _poses(model)
+    a, b = sorted(truth)[VIEWS // 2 - 1], sorted(truth)[VIEWS // 2]  # the photos either side of the seam
+
+    def relative(poses):
+        return poses[b][:, :3] @ poses[a][:, :3].T
+
+    error = np.degrees(np.arccos(np.clip((np.trace(relative(found).T @ relative(truth)) - 1) / 2, -1, 1)))
+    assert error < 0.05  # the seam closed (2 degrees before)
+    errors = [point.error for point in model.points3D.values()]
+    assert max(errors) <= 4.0 and np.median(errors) < 0.5  # nothing beyond COLMAP's 4 px is left

@@ -1,10 +1,12 @@
 """The hierarchical mapper's merge (``hierarchical``, step 3), in the mapper's child process (``mapper_worker``):
 the clusters' models joined by similarities from the cameras they share, then the points triangulated again
-from the whole database with the merged poses held. NumPy, pycolmap (the module passed in) and ``colmap``'s
+from the whole database with the merged poses held, at a tolerance that lets tracks cross the seams
+(``SEAM_MAX_ERROR_PX``). NumPy, pycolmap (the module passed in) and ``colmap``'s
 database opener only: no torch, as the child.
 """
 from __future__ import annotations
 
+import copy
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +21,13 @@ MIN_SHARED = 3
 MAX_ROTATION_DEG = 5.0
 #: ... and its centre within this share of the shared cameras' spread (median distance to their centroid).
 MAX_CENTER_SHARE = 0.1
+#: Where two clusters meet, their poses disagree by a few pixels (each drifted its own way): more than COLMAP's
+#: 4 px, so with its tolerances no track crossed the seam, the adjustment could not close it and the model kept a
+#: kink there (a generated 1,000-photo walk: 3 points shared across one seam by the 10 photos on either side,
+#: ~1,300 across every other cut; pose AUC@5 0.933). Tracks are made and kept up to this error (px) instead; the
+#: merged model's robust adjustment closes the seams and drops what stays beyond 4 px
+#: (``mapper_worker.bundle_adjust_merged``): AUC@5 0.976 (docs/experiments.md, section 41).
+SEAM_MAX_ERROR_PX = 16.0
 
 
 @dataclass
@@ -142,9 +151,21 @@ def _next_to_join(left: list[Piece], merged: Piece):
     return None
 
 
+def seam_options(options):
+    """A copy of ``options`` (IncrementalPipelineOptions) whose triangulation makes and keeps tracks up to
+    SEAM_MAX_ERROR_PX (merging, completing and filtering), at least the given tolerances."""
+    relaxed = copy.deepcopy(options)
+    tolerance = relaxed.triangulation
+    tolerance.merge_max_reproj_error = max(tolerance.merge_max_reproj_error, SEAM_MAX_ERROR_PX)
+    tolerance.complete_max_reproj_error = max(tolerance.complete_max_reproj_error, SEAM_MAX_ERROR_PX)
+    relaxed.mapper.filter_max_reproj_error = max(relaxed.mapper.filter_max_reproj_error, SEAM_MAX_ERROR_PX)
+    return relaxed
+
+
 def assemble(piece: Piece, database: str, image_dir: str, options, scratch: Path, pycolmap):
     """A Reconstruction of ``piece``'s photos at its poses and intrinsics, its points triangulated from
-    ``database`` with the poses held (COLMAP's point triangulator, ``options``: IncrementalPipelineOptions)."""
+    ``database`` with the poses held (COLMAP's point triangulator, ``options``: IncrementalPipelineOptions, its
+    tolerances widened to SEAM_MAX_ERROR_PX by ``seam_options``)."""
     cache_options = pycolmap.DatabaseCacheOptions()
     with open_database(database) as db:
         names = {image.name for image in db.read_all_images() if image.image_id in piece.poses}
@@ -163,6 +184,6 @@ def assemble(piece: Piece, database: str, image_dir: str, options, scratch: Path
         model.register_frame(image.frame_id)
     scratch.mkdir(parents=True, exist_ok=True)
     result = pycolmap.triangulate_points(model, database, image_dir, str(scratch), clear_points=True,
-                                         options=options, refine_intrinsics=False)
+                                         options=seam_options(options), refine_intrinsics=False)
     shutil.rmtree(scratch, ignore_errors=True)
     return result

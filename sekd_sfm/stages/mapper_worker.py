@@ -91,17 +91,30 @@ def refined_intrinsics(options) -> tuple[dict[str, bool], int]:
              "sensor_from_rig": bool(options.mapper.refine_sensor_from_rig)}, int(options.num_threads))
 
 
-def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap) -> None:
-    """One global bundle adjustment of a model the hierarchical mapper merged from clusters.
+def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, max_error_px: float = 4.0) -> None:
+    """One global bundle adjustment of a model the hierarchical mapper merged from clusters, robust to the
+    wrong observations its seams' tracks may hold; then the observations beyond ``max_error_px`` (COLMAP's
+    ``filter_max_reproj_error``) dropped.
 
     COLMAP merges its clusters by similarity transforms and stops there, so each cluster
     keeps its own drift and the seams stay where the merge put them: on the generated
     250-photo block (clusters of 125 photos) pose AUC@5 0.939 as merged, 0.981 after this
-    adjustment (the incremental mapper: 0.980).
+    adjustment (the incremental mapper: 0.980). The merge's tracks cross the seams only with a tolerance of
+    several pixels (``cluster_merge.SEAM_MAX_ERROR_PX``), so the loss is Cauchy's at MERGE_LOSS_SCALE_PX: a
+    seam's right observations pull it shut, a wrong match with an error of many pixels weighs little.
     """
     if reconstruction.num_reg_images() < 2:
         return
-    pycolmap.bundle_adjustment(reconstruction, adjustment_options(reconstruction, num_threads, pycolmap))
+    options = adjustment_options(reconstruction, num_threads, pycolmap)
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = MERGE_LOSS_SCALE_PX
+    pycolmap.bundle_adjustment(reconstruction, options)
+    pycolmap.ObservationManager(reconstruction).filter_all_points3D(max_error_px, FINAL_FILTER_MIN_TRI_ANGLE)
+
+
+#: The scale (px) of the merged model's robust loss (``bundle_adjust_merged``): an observation beyond it counts
+#: less than under a squared loss. The refined keypoints' errors are a tenth of it.
+MERGE_LOSS_SCALE_PX = 1.0
 
 
 #: The final filtered adjustment (``final_filter``): an observation is an outlier when its reprojection error
@@ -212,7 +225,7 @@ def merge_clusters(request: dict, options, pycolmap) -> dict:
                          Path(request["scratch"]) / f"merge-{k}", pycolmap) for k, piece in enumerate(merged)}
     triangulated = time.perf_counter()
     for reconstruction in found.values():
-        bundle_adjust_merged(reconstruction, inner.num_threads, pycolmap)
+        bundle_adjust_merged(reconstruction, inner.num_threads, pycolmap, inner.mapper.filter_max_reproj_error)
     request["merge"] = {"pieces": len(pieces), "models": [len(piece.poses) for piece in merged],
                         "align_s": round(aligned - start, 3), "triangulate_s": round(triangulated - aligned, 3),
                         "bundle_adjustment_s": round(time.perf_counter() - triangulated, 3)}
@@ -238,7 +251,8 @@ def run(request: dict) -> list:
     elif kind == "hierarchical":
         found = pycolmap.hierarchical_mapping(*args)
         for reconstruction in found.values():
-            bundle_adjust_merged(reconstruction, options.incremental_options.num_threads, pycolmap)
+            bundle_adjust_merged(reconstruction, options.incremental_options.num_threads, pycolmap,
+                                 options.incremental_options.mapper.filter_max_reproj_error)
     else:
         raise ValueError(f"unknown mapper type {kind!r}")
     models = sorted(found.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
