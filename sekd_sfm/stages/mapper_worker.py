@@ -91,6 +91,11 @@ def refined_intrinsics(options) -> tuple[dict[str, bool], int]:
              "sensor_from_rig": bool(options.mapper.refine_sensor_from_rig)}, int(options.num_threads))
 
 
+#: The scale (px) of the merged model's robust loss (``bundle_adjust_merged``): an observation beyond it counts
+#: less than under a squared loss. The refined keypoints' errors are a tenth of it.
+MERGE_LOSS_SCALE_PX = 1.0
+
+
 def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, max_error_px: float = 4.0) -> None:
     """One global bundle adjustment of a model the hierarchical mapper merged from clusters, robust to the
     wrong observations its seams' tracks may hold; then the observations beyond ``max_error_px`` (COLMAP's
@@ -110,11 +115,6 @@ def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, max_error_p
     options.ceres.loss_function_scale = MERGE_LOSS_SCALE_PX
     pycolmap.bundle_adjustment(reconstruction, options)
     pycolmap.ObservationManager(reconstruction).filter_all_points3D(max_error_px, FINAL_FILTER_MIN_TRI_ANGLE)
-
-
-#: The scale (px) of the merged model's robust loss (``bundle_adjust_merged``): an observation beyond it counts
-#: less than under a squared loss. The refined keypoints' errors are a tenth of it.
-MERGE_LOSS_SCALE_PX = 1.0
 
 
 #: The final filtered adjustment (``final_filter``): an observation is an outlier when its reprojection error
