@@ -200,7 +200,7 @@ def test_a_seam_where_two_clusters_drifted_apart_is_closed_by_the_merge(arc_scen
     options = mapper_options(OPTIONS, mapper_type="hierarchical").incremental_options
     model = cluster_merge.assemble(piece, str(database), str(images), options, tmp_path / "merge", pycolmap)
     assert _points_across(model, first) > 100  # tracks cross the seam despite its ~17 px (none did at 4 px)
-    bundle_adjust_merged(model, 1, pycolmap)  # noqa
+    bundle_adjust_merged(model, 1, pycolmap)
     found = _poses(model)
     a, b = sorted(truth)[VIEWS // 2 - 1], sorted(truth)[VIEWS // 2]  # the photos either side of the seam
 

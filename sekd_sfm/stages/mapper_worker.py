@@ -96,10 +96,11 @@ def refined_intrinsics(options) -> tuple[dict[str, bool], int]:
 MERGE_LOSS_SCALE_PX = 1.0
 
 
-def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, max_error_px: float = 4.0) -> None:
+def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, filters=None) -> None:
     """One global bundle adjustment of a model the hierarchical mapper merged from clusters, robust to the
-    wrong observations its seams' tracks may hold; then the observations beyond ``max_error_px`` (COLMAP's
-    ``filter_max_reproj_error``) dropped.
+    wrong observations its seams' tracks may hold; then COLMAP's own filter as the mapper's options set it
+    (``filters``: their IncrementalMapperOptions, ``filter_max_reproj_error`` and ``filter_min_tri_angle``;
+    None: COLMAP's defaults, 4 px and 1.5 deg).
 
     COLMAP merges its clusters by similarity transforms and stops there, so each cluster
     keeps its own drift and the seams stay where the merge put them: on the generated
@@ -114,7 +115,9 @@ def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, max_error_p
     options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     options.ceres.loss_function_scale = MERGE_LOSS_SCALE_PX
     pycolmap.bundle_adjustment(reconstruction, options)
-    pycolmap.ObservationManager(reconstruction).filter_all_points3D(max_error_px, FINAL_FILTER_MIN_TRI_ANGLE)
+    filters = filters or pycolmap.IncrementalMapperOptions()
+    pycolmap.ObservationManager(reconstruction).filter_all_points3D(filters.filter_max_reproj_error,
+                                                                     filters.filter_min_tri_angle)
 
 
 #: The final filtered adjustment (``final_filter``): an observation is an outlier when its reprojection error
@@ -225,7 +228,7 @@ def merge_clusters(request: dict, options, pycolmap) -> dict:
                          Path(request["scratch"]) / f"merge-{k}", pycolmap) for k, piece in enumerate(merged)}
     triangulated = time.perf_counter()
     for reconstruction in found.values():
-        bundle_adjust_merged(reconstruction, inner.num_threads, pycolmap, inner.mapper.filter_max_reproj_error)
+        bundle_adjust_merged(reconstruction, inner.num_threads, pycolmap, inner.mapper)
     request["merge"] = {"pieces": len(pieces), "models": [len(piece.poses) for piece in merged],
                         "align_s": round(aligned - start, 3), "triangulate_s": round(triangulated - aligned, 3),
                         "bundle_adjustment_s": round(time.perf_counter() - triangulated, 3)}
@@ -252,7 +255,7 @@ def run(request: dict) -> list:
         found = pycolmap.hierarchical_mapping(*args)
         for reconstruction in found.values():
             bundle_adjust_merged(reconstruction, options.incremental_options.num_threads, pycolmap,
-                                 options.incremental_options.mapper.filter_max_reproj_error)
+                                 options.incremental_options.mapper)
     else:
         raise ValueError(f"unknown mapper type {kind!r}")
     models = sorted(found.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
