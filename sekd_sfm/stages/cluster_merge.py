@@ -165,8 +165,7 @@ def seam_options(options):
 
 def assemble(piece: Piece, database: str, image_dir: str, options, scratch: Path, pycolmap):
     """A Reconstruction of ``piece``'s photos at its poses and intrinsics, its points triangulated from
-    ``database`` with the poses held (COLMAP's point triangulator, ``options``: IncrementalPipelineOptions, its
-    tolerances widened to SEAM_MAX_ERROR_PX by ``seam_options``)."""
+    ``database`` with the poses held (``triangulate_held``)."""
     cache_options = pycolmap.DatabaseCacheOptions()
     with open_database(database) as db:
         names = {image.name for image in db.read_all_images() if image.image_id in piece.poses}
@@ -183,6 +182,13 @@ def assemble(piece: Piece, database: str, image_dir: str, options, scratch: Path
         image = model.image(image_id)
         model.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(pose)
         model.register_frame(image.frame_id)
+    return triangulate_held(model, database, image_dir, options, scratch, pycolmap)
+
+
+def triangulate_held(model, database: str, image_dir: str, options, scratch: Path, pycolmap):
+    """``model`` with its points cleared and triangulated again from ``database``, its poses and intrinsics
+    held (COLMAP's point triangulator, ``options``: IncrementalPipelineOptions, its tolerances widened to
+    SEAM_MAX_ERROR_PX by ``seam_options``)."""
     scratch.mkdir(parents=True, exist_ok=True)
     result = pycolmap.triangulate_points(model, database, image_dir, str(scratch), clear_points=True,
                                          options=seam_options(options), refine_intrinsics=False)

@@ -55,6 +55,13 @@ def _event(text: str) -> None:
     os.write(1, (text + "\n").encode())  # unbuffered: the parent's progress bar moves at once
 
 
+#: Ceres stops when an iteration lowers the cost by less than this share of it (Ceres' own default). COLMAP sets
+#: 0, so each adjustment ran to its 100 iterations, the last ones moving nothing: on a generated 1,000-photo walk's
+#: merged model, the merge's adjustment and final filter took 161 + 135 s at 0 and 101 + 56 s at 1e-6, pose AUC@5
+#: 0.9934 and 0.9933 (docs/experiments.md, section 42).
+ADJUSTMENT_FUNCTION_TOLERANCE = 1e-6
+
+
 def adjustment_options(reconstruction, num_threads: int, pycolmap, refine: dict | None = None):
     """pycolmap BundleAdjustmentOptions for one global adjustment of ``reconstruction``: quiet, on ``num_threads``,
     Ceres' sparse direct solver at any size; ``refine`` (focal_length, principal_point, extra_params) sets which
@@ -66,6 +73,7 @@ def adjustment_options(reconstruction, num_threads: int, pycolmap, refine: dict 
     # the merged 2,000-photo block; the sparse direct one stays cheap while the camera graph is sparse, as
     # retrieval pairs make it (each photo shares points with a few dozen others).
     options.ceres.max_num_images_direct_sparse_cpu_solver = max(1000, reconstruction.num_reg_images())
+    options.ceres.solver_options.function_tolerance = ADJUSTMENT_FUNCTION_TOLERANCE
     if refine is not None:
         options.refine_focal_length = refine["focal_length"]
         options.refine_principal_point = refine["principal_point"]
@@ -211,27 +219,53 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
     pycolmap.create_default_ceres_bundle_adjuster(options, config, reconstruction).solve()
 
 
+#: Triangulate-and-adjust passes of the merge (``merge_clusters``). The first pass's tracks cross a seam only
+#: where the clusters disagree by less than ``cluster_merge.SEAM_MAX_ERROR_PX``; its adjustment pulls the seam
+#: in, so the second pass's triangulation finds the tracks the first could not. On a generated 1,000-photo
+#: walk: pose AUC@5 0.958 after one pass, 0.994 after two (docs/experiments.md, section 41).
+MERGE_PASSES = 2
+
+
+def merged_model(piece, database: str, image_dir: str, options, scratch: Path, pycolmap, passes: int = MERGE_PASSES,
+                 seconds: dict | None = None):
+    """The Reconstruction of one merged ``piece`` (``cluster_merge.Piece``): its points triangulated from
+    ``database`` with the poses held (``cluster_merge.assemble``), adjusted (``bundle_adjust_merged``), then
+    ``passes`` - 1 times triangulated again from the adjusted poses and adjusted again. ``options``: the
+    IncrementalPipelineOptions; ``seconds`` (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
+    from .cluster_merge import assemble, triangulate_held
+
+    seconds = seconds if seconds is not None else {"triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
+    clock = time.perf_counter()
+    model = assemble(piece, database, image_dir, options, scratch, pycolmap)
+    for again in range(passes):
+        if again:
+            clock = time.perf_counter()
+            model = triangulate_held(model, database, image_dir, options, scratch, pycolmap)
+        adjusting = time.perf_counter()
+        bundle_adjust_merged(model, options.num_threads, pycolmap, options.mapper)
+        seconds["triangulate_s"] += adjusting - clock
+        seconds["bundle_adjustment_s"] += time.perf_counter() - adjusting
+    return model
+
+
 def merge_clusters(request: dict, options, pycolmap) -> dict:
     """The models of the clusters mapped on the executor (``request["clusters"]``: their ``model_arrays``),
     merged, triangulated again from the database, adjusted as a whole, and kept when they hold ``min_model_size``
     photos. ``request["merge"]`` gets the record: pieces, models, seconds of each step. ``options``: the
     hierarchical mapper's, or the incremental mapper's (one model's poses closed over the database: the capture
     order's chain, ``run_mapper(poses_from=...)``)."""
-    from .cluster_merge import assemble, merge_pieces, pieces_of
+    from .cluster_merge import merge_pieces, pieces_of
 
     inner = getattr(options, "incremental_options", options)
     start = time.perf_counter()
     pieces = [piece for arrays in request["clusters"] for piece in pieces_of(arrays)]
     merged = [piece for piece in merge_pieces(pieces) if len(piece.poses) >= int(inner.min_model_size)]
-    aligned = time.perf_counter()
-    found = {k: assemble(piece, request["database"], request["image_dir"], inner,
-                         Path(request["scratch"]) / f"merge-{k}", pycolmap) for k, piece in enumerate(merged)}
-    triangulated = time.perf_counter()
-    for reconstruction in found.values():
-        bundle_adjust_merged(reconstruction, inner.num_threads, pycolmap, inner.mapper)
+    seconds = {"align_s": time.perf_counter() - start, "triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
+    found = {k: merged_model(piece, request["database"], request["image_dir"], inner,
+                             Path(request["scratch"]) / f"merge-{k}", pycolmap, seconds=seconds)
+             for k, piece in enumerate(merged)}
     request["merge"] = {"pieces": len(pieces), "models": [len(piece.poses) for piece in merged],
-                        "align_s": round(aligned - start, 3), "triangulate_s": round(triangulated - aligned, 3),
-                        "bundle_adjustment_s": round(time.perf_counter() - triangulated, 3)}
+                        "passes": MERGE_PASSES, **{key: round(value, 3) for key, value in seconds.items()}}
     return found
 
 
