@@ -26,8 +26,9 @@ MAX_CENTER_SHARE = 0.1
 #: kink there (a generated 1,000-photo walk: 3 points shared across one seam by the 10 photos on either side,
 #: ~1,400 across every other cut). Tracks are made and kept up to this error (px) instead; the merged model's
 #: robust adjustment pulls the seams in and drops what stays beyond 4 px (``mapper_worker.bundle_adjust_merged``):
-#: pose AUC@5 0.933 -> 0.958 on that walk, 0.780 -> 0.913 on a 2,000-photo one. One pass does not close a seam
-#: off by much more than this (docs/experiments.md, section 41).
+#: pose AUC@5 0.933 -> 0.958 on that walk, 0.780 -> 0.913 on a 2,000-photo one. A seam off by much more than this
+#: keeps few tracks; the merge's second pass (``mapper_worker.MERGE_PASSES``) triangulates again once the first
+#: pass's adjustment has pulled it in (docs/experiments.md, sections 41 and 42).
 SEAM_MAX_ERROR_PX = 16.0
 
 
