@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy import sparse
 
 from .colmap import open_database
 
@@ -31,10 +30,6 @@ MAX_CENTER_SHARE = 0.1
 #: keeps few tracks; the merge's second pass (``mapper_worker.MERGE_PASSES``) triangulates again once the first
 #: pass's adjustment has pulled it in (docs/experiments.md, sections 41 and 42).
 SEAM_MAX_ERROR_PX = 16.0
-#: Two photos are linked when they share at least this many 3D points. Another pass of the merge pays only when
-#: its triangulation links photos that were not (``newly_linked``: a seam the last adjustment pulled in): pairs
-#: it gives twice this many that had fewer than this, so pairs near the bound do not count by chance.
-LINK_MIN_POINTS = 15
 
 
 @dataclass
@@ -200,26 +195,3 @@ def triangulate_held(model, database: str, image_dir: str, options, scratch: Pat
                                          options=seam_options(options), refine_intrinsics=False)
     shutil.rmtree(scratch, ignore_errors=True)
     return result
-
-
-def shared_points(model) -> sparse.csr_matrix:
-    """How many 3D points each two registered photos of ``model`` share: an upper-triangular sparse matrix indexed
-    by image id (``max id + 1`` square), zero on and below the diagonal."""
-    points, images = [], []
-    for k, point in enumerate(model.points3D.values()):
-        for element in point.track.elements:
-            points.append(k)
-            images.append(element.image_id)
-    size = max(model.images, default=-1) + 1
-    seen = sparse.csr_matrix((np.ones(len(points)), (points, images)), shape=(len(model.points3D), size))
-    seen.data[:] = 1.0  # two observations of one point in one photo count once
-    return sparse.triu(seen.T @ seen, k=1).tocsr()
-
-
-def newly_linked(before: sparse.csr_matrix, after: sparse.csr_matrix) -> int:
-    """Pairs of photos sharing at least 2 x LINK_MIN_POINTS points in ``after`` and fewer than LINK_MIN_POINTS in
-    ``before`` (``shared_points`` of two triangulations of the same photos: matrices of one shape)."""
-    rows, cols = (after >= 2 * LINK_MIN_POINTS).nonzero()
-    if len(rows) == 0:
-        return 0
-    return int(np.count_nonzero(np.asarray(before[rows, cols]).ravel() < LINK_MIN_POINTS))

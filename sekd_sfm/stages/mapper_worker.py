@@ -17,7 +17,6 @@ under a second (no torch).
 """
 from __future__ import annotations
 
-import copy
 import ctypes
 import json
 import os
@@ -220,52 +219,41 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
     pycolmap.create_default_ceres_bundle_adjuster(options, config, reconstruction).solve()
 
 
-#: Triangulate-and-adjust passes of the merge at most (``merged_model``). The first pass's tracks cross a seam only
+#: Triangulate-and-adjust passes of the merge (``merge_clusters``). The first pass's tracks cross a seam only
 #: where the clusters disagree by less than ``cluster_merge.SEAM_MAX_ERROR_PX``; its adjustment pulls the seam
-#: in, so the second pass's triangulation finds the tracks the first could not. Generated walks, pose AUC@5 after
-#: one pass and two: 1,000 photos 0.958 and 0.994, 2,000 photos 0.913 and 0.923 (one seam there was off by more
-#: still). A model the first pass closed skips the second adjustment (``cluster_merge.newly_linked``: ~10 s of
-#: a 100-photo walk's mapping) (docs/experiments.md, sections 41 and 42).
+#: in, so the second pass's triangulation finds the tracks the first could not. On a generated 1,000-photo
+#: walk: pose AUC@5 0.958 after one pass, 0.994 after two (docs/experiments.md, section 41).
 MERGE_PASSES = 2
 
 
 def merged_model(piece, database: str, image_dir: str, options, scratch: Path, pycolmap, passes: int = MERGE_PASSES,
                  seconds: dict | None = None):
     """The Reconstruction of one merged ``piece`` (``cluster_merge.Piece``): its points triangulated from
-    ``database`` with the poses held (``cluster_merge.assemble``), adjusted (``bundle_adjust_merged``), then up to
-    ``passes`` - 1 times triangulated again from the adjusted poses and adjusted again, as long as a pass links
-    photos the last did not (``cluster_merge.newly_linked``). ``options``: the IncrementalPipelineOptions;
-    ``seconds`` (``triangulate_s``, ``bundle_adjustment_s``, ``passes``: a list) records the time and the passes."""
-    from .cluster_merge import assemble, newly_linked, shared_points, triangulate_held
+    ``database`` with the poses held (``cluster_merge.assemble``), adjusted (``bundle_adjust_merged``), then
+    ``passes`` - 1 times triangulated again from the adjusted poses and adjusted again. ``options``: the
+    IncrementalPipelineOptions; ``seconds`` (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
+    from .cluster_merge import assemble, triangulate_held
 
     seconds = seconds if seconds is not None else {"triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
     clock = time.perf_counter()
     model = assemble(piece, database, image_dir, options, scratch, pycolmap)
-    made = 0
-    while True:
+    for again in range(passes):
+        if again:
+            clock = time.perf_counter()
+            model = triangulate_held(model, database, image_dir, options, scratch, pycolmap)
         adjusting = time.perf_counter()
-        seconds["triangulate_s"] += adjusting - clock
         bundle_adjust_merged(model, options.num_threads, pycolmap, options.mapper)
+        seconds["triangulate_s"] += adjusting - clock
         seconds["bundle_adjustment_s"] += time.perf_counter() - adjusting
-        made += 1
-        if made >= passes:
-            break
-        clock = time.perf_counter()
-        again = triangulate_held(copy.deepcopy(model), database, image_dir, options, scratch, pycolmap)
-        if not newly_linked(shared_points(model), shared_points(again)):
-            seconds["triangulate_s"] += time.perf_counter() - clock
-            break  # the last pass closed every seam: another adjustment would change nothing that matters
-        model = again
-    seconds.setdefault("passes", []).append(made)
     return model
 
 
 def merge_clusters(request: dict, options, pycolmap) -> dict:
     """The models of the clusters mapped on the executor (``request["clusters"]``: their ``model_arrays``),
-    merged, triangulated again from the database and adjusted as a whole (``merged_model``), and kept when they
-    hold ``min_model_size`` photos. ``request["merge"]`` gets the record: pieces, models, passes, seconds of each
-    step. ``options``: the hierarchical mapper's, or the incremental mapper's (one model's poses closed over the
-    database: the capture order's chain, ``run_mapper(poses_from=...)``)."""
+    merged, triangulated again from the database, adjusted as a whole, and kept when they hold ``min_model_size``
+    photos. ``request["merge"]`` gets the record: pieces, models, seconds of each step. ``options``: the
+    hierarchical mapper's, or the incremental mapper's (one model's poses closed over the database: the capture
+    order's chain, ``run_mapper(poses_from=...)``)."""
     from .cluster_merge import merge_pieces, pieces_of
 
     inner = getattr(options, "incremental_options", options)
@@ -277,7 +265,7 @@ def merge_clusters(request: dict, options, pycolmap) -> dict:
                              Path(request["scratch"]) / f"merge-{k}", pycolmap, seconds=seconds)
              for k, piece in enumerate(merged)}
     request["merge"] = {"pieces": len(pieces), "models": [len(piece.poses) for piece in merged],
-                        "passes": seconds.pop("passes", []), **{key: round(value, 3) for key, value in seconds.items()}}
+                        "passes": MERGE_PASSES, **{key: round(value, 3) for key, value in seconds.items()}}
     return found
 
 
