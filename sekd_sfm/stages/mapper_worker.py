@@ -221,8 +221,10 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
 
 #: Triangulate-and-adjust passes of the merge (``merge_clusters``). The first pass's tracks cross a seam only
 #: where the clusters disagree by less than ``cluster_merge.SEAM_MAX_ERROR_PX``; its adjustment pulls the seam
-#: in, so the second pass's triangulation finds the tracks the first could not. On a generated 1,000-photo
-#: walk: pose AUC@5 0.958 after one pass, 0.994 after two (docs/experiments.md, section 41).
+#: in, so the second pass's triangulation finds the tracks the first could not. Generated walks, pose AUC@5 after
+#: one pass and two: 1,000 photos 0.958 and 0.994, 2,000 photos 0.913 and 0.923 (one seam there was off by more
+#: still). A model the first pass closed pays the second adjustment for nothing (~10 s at 100 photos)
+#: (docs/experiments.md, sections 41 and 42).
 MERGE_PASSES = 2
 
 
@@ -250,10 +252,10 @@ def merged_model(piece, database: str, image_dir: str, options, scratch: Path, p
 
 def merge_clusters(request: dict, options, pycolmap) -> dict:
     """The models of the clusters mapped on the executor (``request["clusters"]``: their ``model_arrays``),
-    merged, triangulated again from the database, adjusted as a whole, and kept when they hold ``min_model_size``
-    photos. ``request["merge"]`` gets the record: pieces, models, seconds of each step. ``options``: the
-    hierarchical mapper's, or the incremental mapper's (one model's poses closed over the database: the capture
-    order's chain, ``run_mapper(poses_from=...)``)."""
+    merged, triangulated again from the database and adjusted as a whole (``merged_model``), and kept when they
+    hold ``min_model_size`` photos. ``request["merge"]`` gets the record: pieces, models, passes, seconds of each
+    step. ``options``: the hierarchical mapper's, or the incremental mapper's (one model's poses closed over the
+    database: the capture order's chain, ``run_mapper(poses_from=...)``)."""
     from .cluster_merge import merge_pieces, pieces_of
 
     inner = getattr(options, "incremental_options", options)
