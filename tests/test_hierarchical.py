@@ -21,6 +21,7 @@ from test_reconstruct import (
 )
 
 from sekd_sfm.errors import SekdError
+from sekd_sfm.evaluation.metrics import rotation_error_deg
 from sekd_sfm.execution import LocalExecutor
 from sekd_sfm.pipelines.reconstruct import ReconstructConfig, reconstruct
 from sekd_sfm.stages import cluster_merge, hierarchical
@@ -119,7 +120,7 @@ def test_clusters_mapped_in_two_processes_merge_into_the_true_cameras(arc_scene,
     assert len(agreeing) == VIEWS
     expected = _in_other_world(truth, scale, rotation, translation)
     for name, pose in found.items():  # 0.2 px of keypoint noise: poses to a small fraction of a degree
-        assert np.degrees(np.arccos(np.clip((np.trace(expected[name][:, :3].T @ pose[:, :3]) - 1) / 2, -1, 1))) < 0.1
+        assert rotation_error_deg(pose[:, :3], expected[name][:, :3]) < 0.1
     assert not list(tmp_path.glob("two-clusters.h5*"))  # the clusters' results go once merged
     # One process maps the same clusters to the same model.
     again = _poses(_map(arc_scene, tmp_path, LocalExecutor(1), "one")[0])
@@ -198,7 +199,7 @@ def _seam_error_deg(model, truth) -> float:
     a, b = sorted(truth)[VIEWS // 2 - 1], sorted(truth)[VIEWS // 2]
     found = _poses(model)
     relative_found, relative_true = (p[b][:, :3] @ p[a][:, :3].T for p in (found, truth))
-    return float(np.degrees(np.arccos(np.clip((np.trace(relative_found.T @ relative_true) - 1) / 2, -1, 1))))
+    return rotation_error_deg(relative_found, relative_true)
 
 
 def test_a_seam_where_two_clusters_drifted_apart_is_closed_by_the_merge(arc_scene, tmp_path):

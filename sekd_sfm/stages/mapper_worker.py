@@ -237,12 +237,11 @@ def merged_model(piece, database: str, image_dir: str, options, scratch: Path, p
     from .cluster_merge import assemble, triangulate_held
 
     seconds = seconds if seconds is not None else {"triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
-    clock = time.perf_counter()
-    model = assemble(piece, database, image_dir, options, scratch, pycolmap)
-    for again in range(passes):
-        if again:
-            clock = time.perf_counter()
-            model = triangulate_held(model, database, image_dir, options, scratch, pycolmap)
+    model = None
+    for _ in range(passes):
+        clock = time.perf_counter()
+        model = (assemble(piece, database, image_dir, options, scratch, pycolmap) if model is None
+                 else triangulate_held(model, database, image_dir, options, scratch, pycolmap))
         adjusting = time.perf_counter()
         bundle_adjust_merged(model, options.num_threads, pycolmap, options.mapper)
         seconds["triangulate_s"] += adjusting - clock
