@@ -74,13 +74,37 @@ def test_a_failed_verification_resumes_from_the_pairs_it_finished(database, tmp_
     computed.clear()
     monkeypatch.setattr(verification.VerifyWorker, "__call__", fails_on_the_fourth)
     with pytest.raises(SekdError, match="fourth pair fails"):
-        verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="s")
+        verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="t")
     computed.clear()
     monkeypatch.setattr(verification.VerifyWorker, "__call__",
                         lambda self, keys: (computed.extend(keys), original(self, keys))[1])
-    verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="t")
+    verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="u")
     assert len(computed) == 6 and _rows(database) == _rows(reference)
 
+
+
+def test_a_finished_verification_is_reused_by_the_next_run_of_the_same_inputs(database, tmp_path, monkeypatch):
+    """``sekd reconstruct`` builds its database afresh on every run: a run killed while mapping, or run again with
+    other mapper settings, takes the geometries from the kept results instead of verifying every pair again."""
+    pristine = shutil.copy(database, tmp_path / "pristine.db")
+    verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="s")
+    assert (tmp_path / "database-verification.h5").exists()  # kept: it says what it was computed from
+    reference = _rows(database)
+    computed: list[str] = []
+    original = verification.VerifyWorker.__call__
+    monkeypatch.setattr(verification.VerifyWorker, "__call__",
+                        lambda self, keys: (computed.extend(keys), original(self, keys))[1])
+    shutil.copy(pristine, database)  # the next run's fresh database: matches, no geometries
+    assert not _rows(database)
+    verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="s")
+    assert computed == [] and _rows(database) == reference
+    shutil.copy(pristine, database)  # other inputs (another signature), or other RANSAC options: verified again
+    verification.verify_pairs(database, two_view_options(), LocalExecutor(1), progress=False, signature="t")
+    assert len(computed) == 6 and _rows(database) == reference
+    computed.clear()
+    verification.verify_pairs(database, two_view_options(["ransac.max_error=2"]), LocalExecutor(1), progress=False,
+                              signature="t")
+    assert len(computed) == 6
 
 def test_a_geometry_survives_its_arrays_with_or_without_a_pose():
     import pycolmap

@@ -134,7 +134,10 @@ def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, filters=Non
 #: 1 px at first; 0.5 px measured better on every scene tried (docs/experiments.md, section 30).
 FINAL_FILTER_SIGMAS = 3.0
 FINAL_FILTER_MIN_PX = 0.5
-#: Filter-and-adjust rounds at most; a round that finds under FINAL_FILTER_STOP of the observations ends it.
+#: Filter-and-adjust rounds at most. A round after the first that finds under FINAL_FILTER_STOP of the
+#: observations ends it without adjusting again: on the generated 1,000- and 2,000-photo walks the second round
+#: found 105 and 184 of ~1.4 and ~2.9 million, and its adjustment (26 % and 13 % of the filter's time) changed
+#: pose AUC@5 by less than 0.0001 (docs/experiments.md, section 43).
 FINAL_FILTER_ROUNDS = 3
 FINAL_FILTER_STOP = 0.001
 #: Points whose rays meet at a smaller angle (deg) go too, as COLMAP's own filter (``filter_min_tri_angle``).
@@ -166,8 +169,9 @@ def final_filter(reconstruction, refine: dict, num_threads: int, pycolmap, fixed
     adjustment, with a squared loss. Refined keypoints are good to a fraction of a pixel (median
     reprojection error 0.07 px on the generated 250-photo block), so a 2-4 px observation is a wrong
     match that still bends the model. Each round removes the observations beyond max(FINAL_FILTER_MIN_PX,
-    FINAL_FILTER_SIGMAS robust sigma) (sigma from the median error) and adjusts everything once more, the
-    intrinsics as the mapper refined them (``refine``: focal_length, principal_point, extra_params);
+    FINAL_FILTER_SIGMAS robust sigma) (sigma from the median error) and adjusts everything once more (a later
+    round that removes almost nothing, under FINAL_FILTER_STOP, only removes), the intrinsics as the mapper refined
+    them (``refine``: focal_length, principal_point, extra_params);
     ``fixed_frames`` / ``fixed_cameras`` (ids) stay constant, as an extension's earlier ones.
     Pose AUC@5 against the true cameras: generated 250-photo block 0.972 -> 0.993; 47-photo turntable
     ring under a long lens 0.985 -> 0.993 at 640 px (SIFT 0.991), 0.991 -> 0.997 at 1280 px (SIFT 0.998);
@@ -190,8 +194,8 @@ def final_filter(reconstruction, refine: dict, num_threads: int, pycolmap, fixed
         pycolmap.ObservationManager(reconstruction).filter_all_points3D(threshold, FINAL_FILTER_MIN_TRI_ANGLE)
         removed = before - reconstruction.compute_num_observations()
         record["removed_observations"] += int(removed)
-        if removed == 0:
-            break
+        if removed == 0 or (record["rounds"] and removed < FINAL_FILTER_STOP * before):
+            break  # what is left moves the model too little to pay for another adjustment
         _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap)
         record["rounds"] += 1
         if removed < FINAL_FILTER_STOP * before:
@@ -221,27 +225,38 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
 
 #: Triangulate-and-adjust passes of the merge (``merge_clusters``). The first pass's tracks cross a seam only
 #: where the clusters disagree by less than ``cluster_merge.SEAM_MAX_ERROR_PX``; its adjustment pulls the seam
-#: in, so the second pass's triangulation finds the tracks the first could not. Generated walks, pose AUC@5 after
-#: one pass and two: 1,000 photos 0.958 and 0.994, 2,000 photos 0.913 and 0.923 (one seam there was off by more
-#: still). A model the first pass closed pays the second adjustment for nothing (~10 s at 100 photos)
-#: (docs/experiments.md, sections 41 and 42).
+#: in, so the second pass's triangulation, at twice that tolerance (``merge_pass_max_error_px``), finds the tracks
+#: the first could not. Generated walks, pose AUC@5 after one pass and two at 16 px: 1,000 photos 0.958 and 0.994,
+#: 2,000 photos 0.913 and 0.923 (one seam there was off by more still); a pass at 32 px after those two: 0.993 and
+#: 0.969. A model the first pass closed pays the second adjustment for nothing (~10 s at 100 photos)
+#: (docs/experiments.md, sections 41 to 43).
 MERGE_PASSES = 2
+
+
+def merge_pass_max_error_px(k: int) -> float:
+    """The tolerance (px) of the merge's pass ``k`` (0 first): ``cluster_merge.SEAM_MAX_ERROR_PX``, doubled at each
+    pass. Each pass's robust adjustment down-weights what a wider tolerance lets in, and its 4 px filter drops it."""
+    from .cluster_merge import SEAM_MAX_ERROR_PX
+
+    return SEAM_MAX_ERROR_PX * 2 ** k
 
 
 def merged_model(piece, database: str, image_dir: str, options, scratch: Path, pycolmap, passes: int = MERGE_PASSES,
                  seconds: dict | None = None):
     """The Reconstruction of one merged ``piece`` (``cluster_merge.Piece``): its points triangulated from
     ``database`` with the poses held (``cluster_merge.assemble``), adjusted (``bundle_adjust_merged``), then
-    ``passes`` - 1 times triangulated again from the adjusted poses and adjusted again. ``options``: the
-    IncrementalPipelineOptions; ``seconds`` (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
+    ``passes`` - 1 times triangulated again from the adjusted poses, each time at a wider tolerance
+    (``merge_pass_max_error_px``), and adjusted again. ``options``: the IncrementalPipelineOptions; ``seconds``
+    (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
     from .cluster_merge import assemble, triangulate_held
 
     seconds = seconds if seconds is not None else {"triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
     model = None
-    for _ in range(passes):
+    for k in range(passes):
         clock = time.perf_counter()
         model = (assemble(piece, database, image_dir, options, scratch, pycolmap) if model is None
-                 else triangulate_held(model, database, image_dir, options, scratch, pycolmap))
+                 else triangulate_held(model, database, image_dir, options, scratch, pycolmap,
+                                       merge_pass_max_error_px(k)))
         adjusting = time.perf_counter()
         bundle_adjust_merged(model, options.num_threads, pycolmap, options.mapper)
         seconds["triangulate_s"] += adjusting - clock
