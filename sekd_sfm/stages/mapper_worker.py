@@ -225,38 +225,27 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
 
 #: Triangulate-and-adjust passes of the merge (``merge_clusters``). The first pass's tracks cross a seam only
 #: where the clusters disagree by less than ``cluster_merge.SEAM_MAX_ERROR_PX``; its adjustment pulls the seam
-#: in, so the second pass's triangulation, at twice that tolerance (``merge_pass_max_error_px``), finds the tracks
-#: the first could not. Generated walks, pose AUC@5 after one pass and two at 16 px: 1,000 photos 0.958 and 0.994,
-#: 2,000 photos 0.913 and 0.923 (one seam there was off by more still); a pass at 32 px after those two: 0.993 and
-#: 0.969. A model the first pass closed pays the second adjustment for nothing (~10 s at 100 photos)
-#: (docs/experiments.md, sections 41 to 43).
+#: in, so the second pass's triangulation finds the tracks the first could not. Generated walks, pose AUC@5 after
+#: one pass and two: 1,000 photos 0.958 and 0.994, 2,000 photos 0.913 and 0.923 (one seam there was off by more
+#: still). A model the first pass closed pays the second adjustment for nothing (~10 s at 100 photos)
+#: (docs/experiments.md, sections 41 and 42).
 MERGE_PASSES = 2
-
-
-def merge_pass_max_error_px(k: int) -> float:
-    """The tolerance (px) of the merge's pass ``k`` (0 first): ``cluster_merge.SEAM_MAX_ERROR_PX``, doubled at each
-    pass. Each pass's robust adjustment down-weights what a wider tolerance lets in, and its 4 px filter drops it."""
-    from .cluster_merge import SEAM_MAX_ERROR_PX
-
-    return SEAM_MAX_ERROR_PX * 2 ** k
 
 
 def merged_model(piece, database: str, image_dir: str, options, scratch: Path, pycolmap, passes: int = MERGE_PASSES,
                  seconds: dict | None = None):
     """The Reconstruction of one merged ``piece`` (``cluster_merge.Piece``): its points triangulated from
     ``database`` with the poses held (``cluster_merge.assemble``), adjusted (``bundle_adjust_merged``), then
-    ``passes`` - 1 times triangulated again from the adjusted poses, each time at a wider tolerance
-    (``merge_pass_max_error_px``), and adjusted again. ``options``: the IncrementalPipelineOptions; ``seconds``
-    (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
+    ``passes`` - 1 times triangulated again from the adjusted poses and adjusted again. ``options``: the
+    IncrementalPipelineOptions; ``seconds`` (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
     from .cluster_merge import assemble, triangulate_held
 
     seconds = seconds if seconds is not None else {"triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
     model = None
-    for k in range(passes):
+    for _ in range(passes):
         clock = time.perf_counter()
         model = (assemble(piece, database, image_dir, options, scratch, pycolmap) if model is None
-                 else triangulate_held(model, database, image_dir, options, scratch, pycolmap,
-                                       merge_pass_max_error_px(k)))
+                 else triangulate_held(model, database, image_dir, options, scratch, pycolmap))
         adjusting = time.perf_counter()
         bundle_adjust_merged(model, options.num_threads, pycolmap, options.mapper)
         seconds["triangulate_s"] += adjusting - clock
