@@ -232,6 +232,33 @@ def test_final_filter_drops_wrong_observations_and_restores_the_poses(synthetic)
     assert bent_by > 0.05 and largest_change() < bent_by / 2, (bent_by, largest_change())  # most of the way back
 
 
+
+def test_the_final_filter_adjusts_after_a_later_round_only_when_it_removed_enough(monkeypatch):
+    """Rounds 1 and 2 remove 5 % and 0.05 % of the observations: the first is adjusted, the second only removes
+    (FINAL_FILTER_STOP 0.1 %); with 0.5 % in the second it is adjusted too, and the third finds nothing."""
+    from types import SimpleNamespace
+
+    from sekd_sfm.stages import mapper_worker
+
+    def run(removals: list[int]) -> tuple[dict, int]:
+        state = {"observations": 100_000, "adjusted": 0}
+
+        def remove(threshold, min_angle):
+            state["observations"] -= removals.pop(0) if removals else 0
+
+        model = SimpleNamespace(num_reg_images=lambda: 2, compute_num_observations=lambda: state["observations"])
+        fake = SimpleNamespace(ObservationManager=lambda reconstruction: SimpleNamespace(filter_all_points3D=remove))
+        monkeypatch.setattr(mapper_worker, "reprojection_errors", lambda reconstruction: np.full(10, 0.1))
+        monkeypatch.setattr(mapper_worker, "adjustment_options", lambda *args: None)
+        monkeypatch.setattr(mapper_worker, "_adjust", lambda *args: state.update(adjusted=state["adjusted"] + 1))
+        record = mapper_worker.final_filter(model, {}, 1, fake)
+        return record, state["adjusted"]
+
+    record, adjusted = run([5_000, 50])
+    assert adjusted == record["rounds"] == 1 and record["removed_observations"] == 5_050
+    record, adjusted = run([5_000, 500, 0])
+    assert adjusted == record["rounds"] == 2 and record["removed_observations"] == 5_500
+
 def rot(reconstruction, name: str) -> np.ndarray:
     image = next(im for im in reconstruction.images.values() if im.name == name)
     return image.cam_from_world().rotation.matrix()

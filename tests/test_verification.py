@@ -82,7 +82,6 @@ def test_a_failed_verification_resumes_from_the_pairs_it_finished(database, tmp_
     assert len(computed) == 6 and _rows(database) == _rows(reference)
 
 
-
 def test_a_finished_verification_is_reused_by_the_next_run_of_the_same_inputs(database, tmp_path, monkeypatch):
     """``sekd reconstruct`` builds its database afresh on every run: a run killed while mapping, or run again with
     other mapper settings, takes the geometries from the kept results instead of verifying every pair again."""
@@ -105,6 +104,7 @@ def test_a_finished_verification_is_reused_by_the_next_run_of_the_same_inputs(da
     verification.verify_pairs(database, two_view_options(["ransac.max_error=2"]), LocalExecutor(1), progress=False,
                               signature="t")
     assert len(computed) == 6
+
 
 def test_a_geometry_survives_its_arrays_with_or_without_a_pose():
     import pycolmap
