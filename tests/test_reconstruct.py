@@ -232,7 +232,6 @@ def test_final_filter_drops_wrong_observations_and_restores_the_poses(synthetic)
     assert bent_by > 0.05 and largest_change() < bent_by / 2, (bent_by, largest_change())  # most of the way back
 
 
-
 def test_the_final_filter_adjusts_after_a_later_round_only_when_it_removed_enough(monkeypatch):
     """Rounds 1 and 2 remove 5 % and 0.05 % of the observations: the first is adjusted, the second only removes
     (FINAL_FILTER_STOP 0.1 %); with 0.5 % in the second it is adjusted too, and the third finds nothing."""
@@ -258,6 +257,7 @@ def test_the_final_filter_adjusts_after_a_later_round_only_when_it_removed_enoug
     assert adjusted == record["rounds"] == 1 and record["removed_observations"] == 5_050
     record, adjusted = run([5_000, 500, 0])
     assert adjusted == record["rounds"] == 2 and record["removed_observations"] == 5_500
+
 
 def rot(reconstruction, name: str) -> np.ndarray:
     image = next(im for im in reconstruction.images.values() if im.name == name)
