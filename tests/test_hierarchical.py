@@ -4,6 +4,7 @@ killed run resumes from its clusters."""
 from __future__ import annotations
 
 import contextlib
+import json
 import shutil
 import sqlite3
 
@@ -225,3 +226,33 @@ def test_a_seam_too_wide_for_one_pass_is_closed_by_the_second(arc_scene, tmp_pat
     assert _points_across(once, first) < 50  # measured: 8
     assert _points_across(twice, first) > 300  # measured: all 500 points of the scene
     assert _seam_error_deg(twice, truth) < min(0.05, _seam_error_deg(once, truth) / 2)  # measured: 0.018, 0.072
+
+
+def test_a_merge_without_passes_triangulates_onto_the_poses_as_merged(arc_scene, tmp_path):
+    """``passes=0`` (the capture order's chain, closed and adjusted afterwards): points triangulated, poses and
+    seam left as the merge put them."""
+    images, database, truth = arc_scene
+    piece, _ = _drifted_piece(arc_scene, 2.0)
+    options = mapper_options(OPTIONS, mapper_type="hierarchical").incremental_options
+    model = merged_model(piece, str(database), str(images), options, tmp_path / "none", pycolmap, passes=0)
+    assert model.num_reg_images() == VIEWS and model.num_points3D() > 300
+    assert abs(_seam_error_deg(model, truth) - 2.0) < 1e-6  # not adjusted: the 2-degree seam is still there
+
+
+def test_an_ordered_capture_in_clusters_is_closed_once(arc_scene, tmp_path):
+    """The hierarchical mapper on an ordered capture: the chain's clusters merged without adjusting (merge passes
+    0), then closed over every pair and adjusted once: every photo, true to a tenth of a degree."""
+    images, database, truth = arc_scene
+    (tmp_path / "out").mkdir()
+    for name in ("features.h5", "matches.h5", "pairs.txt"):  # the fixture's run: only the mapping differs
+        shutil.copy(database.parent / name, tmp_path / "out" / name)
+    config = ReconstructConfig(features=SIFT, camera=CALIBRATED, mapper_type="hierarchical", mapper=OPTIONS)
+    model = reconstruct(images, tmp_path / "out", config, progress=False)
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert stats["sequence"]["reason"] == "ordered" and stats["sequence"]["kept"] == "closed"
+    assert stats["hierarchical"]["merge"]["passes"] == 0 and len(stats["hierarchical"]["clusters"]["photos"]) >= 3
+    found = _poses(pycolmap.Reconstruction(str(model)))
+    assert len(found) == VIEWS
+    scale, rotation, translation, _ = cluster_merge.similarity(truth, found)
+    expected = _in_other_world(truth, scale, rotation, translation)
+    assert max(rotation_error_deg(pose[:, :3], expected[name][:, :3]) for name, pose in found.items()) < 0.1

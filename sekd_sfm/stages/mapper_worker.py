@@ -236,16 +236,19 @@ def merged_model(piece, database: str, image_dir: str, options, scratch: Path, p
                  seconds: dict | None = None):
     """The Reconstruction of one merged ``piece`` (``cluster_merge.Piece``): its points triangulated from
     ``database`` with the poses held (``cluster_merge.assemble``), adjusted (``bundle_adjust_merged``), then
-    ``passes`` - 1 times triangulated again from the adjusted poses and adjusted again. ``options``: the
+    ``passes`` - 1 times triangulated again from the adjusted poses and adjusted again; ``passes`` = 0: assembled
+    only, nothing adjusted (a chain the capture order closes afterwards). ``options``: the
     IncrementalPipelineOptions; ``seconds`` (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
     from .cluster_merge import assemble, triangulate_held
 
     seconds = seconds if seconds is not None else {"triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
-    model = None
-    for _ in range(passes):
+    clock = time.perf_counter()
+    model = assemble(piece, database, image_dir, options, scratch, pycolmap)
+    seconds["triangulate_s"] += time.perf_counter() - clock
+    for k in range(passes):
         clock = time.perf_counter()
-        model = (assemble(piece, database, image_dir, options, scratch, pycolmap) if model is None
-                 else triangulate_held(model, database, image_dir, options, scratch, pycolmap))
+        if k:
+            model = triangulate_held(model, database, image_dir, options, scratch, pycolmap)
         adjusting = time.perf_counter()
         bundle_adjust_merged(model, options.num_threads, pycolmap, options.mapper)
         seconds["triangulate_s"] += adjusting - clock
@@ -256,9 +259,10 @@ def merged_model(piece, database: str, image_dir: str, options, scratch: Path, p
 def merge_clusters(request: dict, options, pycolmap) -> dict:
     """The models of the clusters mapped on the executor (``request["clusters"]``: their ``model_arrays``),
     merged, triangulated again from the database and adjusted as a whole (``merged_model``), and kept when they
-    hold ``min_model_size`` photos. ``request["merge"]`` gets the record: pieces, models, passes, seconds of each
-    step. ``options``: the hierarchical mapper's, or the incremental mapper's (one model's poses closed over the
-    database: the capture order's chain, ``run_mapper(poses_from=...)``)."""
+    hold ``min_model_size`` photos. ``request["merge_passes"]``: ``merged_model``'s passes (default MERGE_PASSES);
+    ``request["merge"]`` gets the record: pieces, models, passes, seconds of each step. ``options``: the
+    hierarchical mapper's, or the incremental mapper's (one model's poses closed over the database: the capture
+    order's chain, ``run_mapper(poses_from=...)``)."""
     from .cluster_merge import merge_pieces, pieces_of
 
     inner = getattr(options, "incremental_options", options)
@@ -266,11 +270,12 @@ def merge_clusters(request: dict, options, pycolmap) -> dict:
     pieces = [piece for arrays in request["clusters"] for piece in pieces_of(arrays)]
     merged = [piece for piece in merge_pieces(pieces) if len(piece.poses) >= int(inner.min_model_size)]
     seconds = {"align_s": time.perf_counter() - start, "triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
+    passes = int(request.get("merge_passes", MERGE_PASSES))
     found = {k: merged_model(piece, request["database"], request["image_dir"], inner,
-                             Path(request["scratch"]) / f"merge-{k}", pycolmap, seconds=seconds)
+                             Path(request["scratch"]) / f"merge-{k}", pycolmap, passes, seconds)
              for k, piece in enumerate(merged)}
-    request["merge"] = {"pieces": len(pieces), "models": [len(piece.poses) for piece in merged],
-                        "passes": MERGE_PASSES, **{key: round(value, 3) for key, value in seconds.items()}}
+    request["merge"] = {"pieces": len(pieces), "models": [len(piece.poses) for piece in merged], "passes": passes,
+                        **{key: round(value, 3) for key, value in seconds.items()}}
     return found
 
 

@@ -182,7 +182,8 @@ def clean_scratch(folder: Path) -> None:
 def run_mapper(database: str | Path, image_dir: str | Path, options=None, progress: bool = True,
                log_prefix: str | Path | None = None, input_model: str | Path | None = None,
                final_filter: bool = False, records: list | None = None, executor="local",
-               details: dict | None = None, poses_from: list[dict] | None = None) -> list:
+               details: dict | None = None, poses_from: list[dict] | None = None,
+               merge_passes: int | None = None) -> list:
     """Map ``database`` with the mapper of ``options``; the reconstructions found, largest first (may be empty).
 
     ``options`` is one of pycolmap's pipeline option objects (``mapper_options``; default:
@@ -199,6 +200,8 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
     ``poses_from``: no mapping; models already mapped (``hierarchical.model_arrays`` of each, e.g. the capture
     order's chain on fewer pairs) are triangulated again from ``database`` with their poses held and adjusted as
     a whole (incremental or hierarchical options), as the hierarchical mapper's clusters are merged.
+    ``merge_passes``: the triangulate-and-adjust passes of that merge (None: ``mapper_worker.MERGE_PASSES``; 0: the
+    points triangulated onto the poses as merged, nothing adjusted).
     """
     require_pycolmap()
     options = options if options is not None else mapper_options()
@@ -212,6 +215,8 @@ def run_mapper(database: str | Path, image_dir: str | Path, options=None, progre
                "scratch": str(scratch / "work"), "result": str(scratch / "result"), "parent_pid": os.getpid(),
                "seed": _seed(options), "log_prefix": str(log_prefix) if log_prefix else None,
                "input_path": str(input_model) if input_model else "", "final_filter": final_filter}
+    if merge_passes is not None:
+        request["merge_passes"] = merge_passes
     details = {} if details is None else details
     if poses_from is not None:
         request["clusters"] = poses_from
