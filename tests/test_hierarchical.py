@@ -222,10 +222,22 @@ def test_a_seam_too_wide_for_one_pass_is_closed_by_the_second(arc_scene, tmp_pat
     first = {ids[n] for n in sorted(truth)[:VIEWS // 2]}
     options = mapper_options(OPTIONS, mapper_type="hierarchical").incremental_options
     once = merged_model(piece, str(database), str(images), options, tmp_path / "once", pycolmap, passes=1)
-    twice = merged_model(piece, str(database), str(images), options, tmp_path / "twice", pycolmap)
+    twice = merged_model(piece, str(database), str(images), options, tmp_path / "twice", pycolmap, passes=2)
     assert _points_across(once, first) < 50  # measured: 8
     assert _points_across(twice, first) > 300  # measured: all 500 points of the scene
     assert _seam_error_deg(twice, truth) < min(0.05, _seam_error_deg(once, truth) / 2)  # measured: 0.018, 0.072
+
+
+def test_a_seam_too_wide_for_two_passes_is_closed_by_the_third_at_twice_the_tolerance(arc_scene, tmp_path):
+    images, database, truth = arc_scene
+    piece, ids = _drifted_piece(arc_scene, 6.0)  # ~52 px at the seam: no track within 16 px, a few within 32
+    first = {ids[n] for n in sorted(truth)[:VIEWS // 2]}
+    options = mapper_options(OPTIONS, mapper_type="hierarchical").incremental_options
+    twice = merged_model(piece, str(database), str(images), options, tmp_path / "twice", pycolmap, passes=2)
+    thrice = merged_model(piece, str(database), str(images), options, tmp_path / "thrice", pycolmap)
+    assert _seam_error_deg(twice, truth) > 1.0  # still open after two passes at 16 px
+    assert _points_across(thrice, first) > 100  # measured: 173
+    assert _seam_error_deg(thrice, truth) < 0.05
 
 
 def test_a_merge_without_passes_triangulates_onto_the_poses_as_merged(arc_scene, tmp_path):

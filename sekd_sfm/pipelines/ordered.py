@@ -37,6 +37,11 @@ Reconstruction = Any
 
 logger = logging.getLogger("sekd")
 
+#: The closing's triangulate-and-adjust passes (``mapper_worker.merged_model``): the chain holds at most
+#: ``order_first_max_photos`` photos, whose seams two passes at 16 px close (a third, at 32 px, is for the weak
+#: seams of walks of thousands of photos; on the generated 100-photo walk one pass or two give the same AUC@5).
+CLOSE_PASSES = 2
+
 
 def order_first(s: Reconstruction) -> bool:
     """Whether the photos are mapped in capture order from the start (``SequenceConfig.order_first``): free photos
@@ -101,7 +106,8 @@ def _close(run: Run, s: Reconstruction, database: Path, chain: list) -> tuple[li
     whole adjusted and filtered (``run_mapper(poses_from=...)``): the models and the final filter's records."""
     records: list = []
     models = run_mapper(database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
-                        final_filter=s.config.final_filter, records=records, poses_from=[model_arrays(chain[:1])])
+                        final_filter=s.config.final_filter, records=records, poses_from=[model_arrays(chain[:1])],
+                        merge_passes=CLOSE_PASSES)
     return models, records
 
 

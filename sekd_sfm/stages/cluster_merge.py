@@ -27,8 +27,8 @@ MAX_CENTER_SHARE = 0.1
 #: ~1,400 across every other cut). Tracks are made and kept up to this error (px) instead; the merged model's
 #: robust adjustment pulls the seams in and drops what stays beyond 4 px (``mapper_worker.bundle_adjust_merged``):
 #: pose AUC@5 0.933 -> 0.958 on that walk, 0.780 -> 0.913 on a 2,000-photo one. A seam off by much more than this
-#: keeps few tracks; the merge's second pass (``mapper_worker.MERGE_PASSES``) triangulates again once the first
-#: pass's adjustment has pulled it in (docs/experiments.md, sections 41 and 42).
+#: keeps few tracks; the merge's later passes (``mapper_worker.MERGE_PASS_TOLERANCES_PX``) triangulate again once
+#: the first pass's adjustment has pulled it in (docs/experiments.md, sections 41 to 44).
 SEAM_MAX_ERROR_PX = 16.0
 
 
@@ -153,14 +153,14 @@ def _next_to_join(left: list[Piece], merged: Piece):
     return None
 
 
-def seam_options(options):
+def seam_options(options, tolerance_px: float = SEAM_MAX_ERROR_PX):
     """A copy of ``options`` (IncrementalPipelineOptions) whose triangulation makes and keeps tracks up to
-    SEAM_MAX_ERROR_PX (merging, completing and filtering), at least the given tolerances."""
+    ``tolerance_px`` (merging, completing and filtering), at least the given tolerances."""
     relaxed = copy.deepcopy(options)
     tolerance = relaxed.triangulation
-    tolerance.merge_max_reproj_error = max(tolerance.merge_max_reproj_error, SEAM_MAX_ERROR_PX)
-    tolerance.complete_max_reproj_error = max(tolerance.complete_max_reproj_error, SEAM_MAX_ERROR_PX)
-    relaxed.mapper.filter_max_reproj_error = max(relaxed.mapper.filter_max_reproj_error, SEAM_MAX_ERROR_PX)
+    tolerance.merge_max_reproj_error = max(tolerance.merge_max_reproj_error, tolerance_px)
+    tolerance.complete_max_reproj_error = max(tolerance.complete_max_reproj_error, tolerance_px)
+    relaxed.mapper.filter_max_reproj_error = max(relaxed.mapper.filter_max_reproj_error, tolerance_px)
     return relaxed
 
 
@@ -186,12 +186,13 @@ def assemble(piece: Piece, database: str, image_dir: str, options, scratch: Path
     return triangulate_held(model, database, image_dir, options, scratch, pycolmap)
 
 
-def triangulate_held(model, database: str, image_dir: str, options, scratch: Path, pycolmap):
+def triangulate_held(model, database: str, image_dir: str, options, scratch: Path, pycolmap,
+                     tolerance_px: float = SEAM_MAX_ERROR_PX):
     """``model`` with its points cleared and triangulated again from ``database``, its poses and intrinsics
     held (COLMAP's point triangulator, ``options``: IncrementalPipelineOptions, its tolerances widened to
-    SEAM_MAX_ERROR_PX by ``seam_options``)."""
+    ``tolerance_px`` by ``seam_options``)."""
     scratch.mkdir(parents=True, exist_ok=True)
     result = pycolmap.triangulate_points(model, database, image_dir, str(scratch), clear_points=True,
-                                         options=seam_options(options), refine_intrinsics=False)
+                                         options=seam_options(options, tolerance_px), refine_intrinsics=False)
     shutil.rmtree(scratch, ignore_errors=True)
     return result

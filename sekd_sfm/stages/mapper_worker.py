@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .cluster_merge import SEAM_MAX_ERROR_PX
+
 _PR_SET_PDEATHSIG = 1  # prctl(2)
 
 
@@ -223,20 +225,23 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
     pycolmap.create_default_ceres_bundle_adjuster(options, config, reconstruction).solve()
 
 
-#: Triangulate-and-adjust passes of the merge (``merge_clusters``). The first pass's tracks cross a seam only
-#: where the clusters disagree by less than ``cluster_merge.SEAM_MAX_ERROR_PX``; its adjustment pulls the seam
-#: in, so the second pass's triangulation finds the tracks the first could not. Generated walks, pose AUC@5 after
-#: one pass and two: 1,000 photos 0.958 and 0.994, 2,000 photos 0.913 and 0.923 (one seam there was off by more
-#: still). A model the first pass closed pays the second adjustment for nothing (~10 s at 100 photos)
-#: (docs/experiments.md, sections 41 and 42).
-MERGE_PASSES = 2
+#: The triangulate-and-adjust passes of the merge (``merge_clusters``), each its seam tolerance (px). The first
+#: pass's tracks cross a seam only where the clusters disagree by less than ``cluster_merge.SEAM_MAX_ERROR_PX``;
+#: its adjustment pulls the seam in, so the second pass's triangulation finds the tracks the first could not; a
+#: seam still off by more (one of a 2,000-photo walk) keeps a few tracks at twice the tolerance, which the third
+#: pass's adjustment closes. Widening the second pass instead let in more than it closed. Generated walks, pose
+#: AUC@5 after one pass, two and three: 1,000 photos 0.958, 0.994, 0.993; 2,000 photos 0.913, 0.923, 0.969
+#: (docs/experiments.md, sections 41 to 44).
+MERGE_PASS_TOLERANCES_PX = (SEAM_MAX_ERROR_PX, SEAM_MAX_ERROR_PX, 2 * SEAM_MAX_ERROR_PX)
+MERGE_PASSES = len(MERGE_PASS_TOLERANCES_PX)
 
 
 def merged_model(piece, database: str, image_dir: str, options, scratch: Path, pycolmap, passes: int = MERGE_PASSES,
                  seconds: dict | None = None):
     """The Reconstruction of one merged ``piece`` (``cluster_merge.Piece``): its points triangulated from
     ``database`` with the poses held (``cluster_merge.assemble``), adjusted (``bundle_adjust_merged``), then
-    ``passes`` - 1 times triangulated again from the adjusted poses and adjusted again; ``passes`` = 0: assembled
+    ``passes`` - 1 (at most MERGE_PASSES - 1) times triangulated again from the adjusted poses at that pass's
+    tolerance (MERGE_PASS_TOLERANCES_PX) and adjusted again; ``passes`` = 0: assembled
     only, nothing adjusted (a chain the capture order closes afterwards). ``options``: the
     IncrementalPipelineOptions; ``seconds`` (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
     from .cluster_merge import assemble, triangulate_held
@@ -248,7 +253,8 @@ def merged_model(piece, database: str, image_dir: str, options, scratch: Path, p
     for k in range(passes):
         clock = time.perf_counter()
         if k:
-            model = triangulate_held(model, database, image_dir, options, scratch, pycolmap)
+            model = triangulate_held(model, database, image_dir, options, scratch, pycolmap,
+                                     MERGE_PASS_TOLERANCES_PX[k])
         adjusting = time.perf_counter()
         bundle_adjust_merged(model, options.num_threads, pycolmap, options.mapper)
         seconds["triangulate_s"] += adjusting - clock
