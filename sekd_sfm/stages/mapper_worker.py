@@ -241,9 +241,9 @@ def merged_model(piece, database: str, image_dir: str, options, scratch: Path, p
     """The Reconstruction of one merged ``piece`` (``cluster_merge.Piece``): its points triangulated from
     ``database`` with the poses held (``cluster_merge.assemble``), adjusted (``bundle_adjust_merged``), then
     ``passes`` - 1 (at most MERGE_PASSES - 1) times triangulated again from the adjusted poses at that pass's
-    tolerance (MERGE_PASS_TOLERANCES_PX) and adjusted again; ``passes`` = 0: assembled
-    only, nothing adjusted (a chain the capture order closes afterwards). ``options``: the
-    IncrementalPipelineOptions; ``seconds`` (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
+    tolerance (MERGE_PASS_TOLERANCES_PX) and adjusted again; ``passes`` = 0: assembled only, nothing adjusted
+    (a chain the capture order closes afterwards). ``options``: the IncrementalPipelineOptions; ``seconds``
+    (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
     from .cluster_merge import assemble, triangulate_held
 
     seconds = seconds if seconds is not None else {"triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
