@@ -230,7 +230,7 @@ def _adjust(reconstruction, options, fixed_frames, fixed_cameras, pycolmap) -> N
 #: its adjustment pulls the seam in, so the second pass's triangulation finds the tracks the first could not; a
 #: seam still off by more (one of a 2,000-photo walk) keeps a few tracks at twice the tolerance, which the third
 #: pass's adjustment closes. Widening the second pass instead let in more than it closed. Generated walks, pose
-#: AUC@5 after one pass, two and three: 1,000 photos 0.958, 0.994, 0.993; 2,000 photos 0.913, 0.923, 0.969
+#: AUC@5 after one pass, two and three: 1,000 photos 0.958, 0.994, 0.994; 2,000 photos 0.913, 0.923, 0.978
 #: (docs/experiments.md, sections 41 to 44).
 MERGE_PASS_TOLERANCES_PX = (SEAM_MAX_ERROR_PX, SEAM_MAX_ERROR_PX, 2 * SEAM_MAX_ERROR_PX)
 MERGE_PASSES = len(MERGE_PASS_TOLERANCES_PX)
