@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cluster_merge import SEAM_MAX_ERROR_PX
+from .cluster_merge import SEAM_MAX_ERROR_PX, assemble, merge_pieces, pieces_of, triangulate_held
 
 _PR_SET_PDEATHSIG = 1  # prctl(2)
 
@@ -244,8 +244,6 @@ def merged_model(piece, database: str, image_dir: str, options, scratch: Path, p
     tolerance (MERGE_PASS_TOLERANCES_PX) and adjusted again; ``passes`` = 0: assembled only, nothing adjusted
     (a chain the capture order closes afterwards). ``options``: the IncrementalPipelineOptions; ``seconds``
     (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
-    from .cluster_merge import assemble, triangulate_held
-
     seconds = seconds if seconds is not None else {"triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
     clock = time.perf_counter()
     model = assemble(piece, database, image_dir, options, scratch, pycolmap)
@@ -269,8 +267,6 @@ def merge_clusters(request: dict, options, pycolmap) -> dict:
     ``request["merge"]`` gets the record: pieces, models, passes, seconds of each step. ``options``: the
     hierarchical mapper's, or the incremental mapper's (one model's poses closed over the database: the capture
     order's chain, ``run_mapper(poses_from=...)``)."""
-    from .cluster_merge import merge_pieces, pieces_of
-
     inner = getattr(options, "incremental_options", options)
     start = time.perf_counter()
     pieces = [piece for arrays in request["clusters"] for piece in pieces_of(arrays)]
