@@ -209,8 +209,9 @@ def test_match_on_ray_identical_to_local(cluster, local_run, tmp_path):
 
 
 def test_global_descriptors_on_ray_identical_to_local(cluster, local_run, tmp_path):
-    """``sekd pairs --pairs retrieval --executor ray``: each photo's VLAD on the workers (the vocabulary in the
-    driver); the global descriptors and the pairs those of a local run."""
+    """``sekd pairs --pairs retrieval --executor ray``: the vocabulary's groups and each photo's VLAD on the workers
+    (the sample's PCA and split in the driver); the vocabulary, the global descriptors and the pairs those of a local
+    run."""
     _, features, _, _ = local_run
     copy = shutil.copy(features, tmp_path / "features.h5")
     here = tmp_path / "here"
@@ -220,7 +221,7 @@ def test_global_descriptors_on_ray_identical_to_local(cluster, local_run, tmp_pa
                                   "retrieval", "--num-neighbors", "2", "--no-progress"),
                          check=False, capture_output=True, text=True, timeout=180)
     assert run.returncode == 0, run.stderr[-3000:]
-    assert re.search(r"Ray: 5 imgs in ", run.stderr), run.stderr[-2000:]
+    assert re.search(r"Ray: 4 groups in ", run.stderr) and re.search(r"Ray: 5 imgs in ", run.stderr), run.stderr[-2000:]
     result = CliRunner().invoke(sekd, ["pairs", str(here / "features.h5"), "-o", str(here / "pairs.txt"), "--pairs",
                                        "retrieval", "--num-neighbors", "2", "--no-progress"])
     assert result.exit_code == 0, result.output[-2000:]

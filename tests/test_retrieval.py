@@ -20,11 +20,13 @@ from sekd_sfm.stages.retrieval import (
     Vocabulary,
     compute_global_descriptors,
     global_path,
+    grouped_kmeans,
     kmeans,
     local_to_float,
     nearest_neighbors,
     neighbour_recall,
     pair_recall,
+    share_words,
     vlad,
 )
 
@@ -87,6 +89,52 @@ def test_kmeans_finds_separated_clusters():
     nearest = torch.cdist(centres, found).argmin(1)
     assert sorted(nearest.tolist()) == [0, 1, 2] and torch.allclose(found[nearest], centres, atol=0.01)
     assert kmeans(x[:3], 3).shape == (3, 2)  # k = N works
+
+
+@pytest.mark.parametrize("counts, words, expected", [
+    ([10, 30, 60], 10, [1, 3, 6]),
+    ([1, 1000], 5, [0, 5]),  # the remainder goes to the largest share left
+    ([2, 2, 3], 7, [2, 2, 3]),  # every point its own word
+    ([5, 5, 5], 4, [2, 1, 1]),  # equal remainders: the first group
+])
+def test_share_words_is_proportional_and_adds_up(counts, words, expected):
+    assert share_words(counts, words) == expected
+
+
+def test_grouped_kmeans_finds_separated_clusters_group_by_group(tmp_path):
+    """Eight tight clusters, four groups: each group's k-means gets its clusters' share of the words and finds
+    them; the folder it worked in is left empty."""
+    gen = torch.Generator().manual_seed(2)
+    centres = torch.tensor([[10.0 * (i % 4), 10.0 * (i // 4)] for i in range(8)])
+    x = torch.cat([c + 0.01 * torch.randn(100 + 20 * i, 2, generator=gen) for i, c in enumerate(centres)])
+    found = grouped_kmeans(x, 8, 4, scratch=tmp_path)
+    nearest = torch.cdist(centres, found).argmin(1)
+    assert sorted(nearest.tolist()) == list(range(8)) and torch.allclose(found[nearest], centres, atol=0.01)
+    assert list(tmp_path.iterdir()) == []
+    assert torch.equal(grouped_kmeans(x, 8, 4), found)  # the same in a temporary folder
+
+
+def test_interrupted_grouped_kmeans_keeps_its_finished_groups(tmp_path, monkeypatch):
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randn(2000, 4, generator=gen)
+    whole = grouped_kmeans(x, 40, 4, scratch=tmp_path / "whole")
+    learned: list[str] = []
+    real_call = retrieval.WordsWorker.__call__
+
+    def interrupted_after_two(self, keys):
+        for key in keys:
+            if len(learned) == 2:
+                raise KeyboardInterrupt
+            learned.append(key)
+            yield from real_call(self, [key])
+
+    monkeypatch.setattr(retrieval.WordsWorker, "__call__", interrupted_after_two)
+    with pytest.raises(Interrupted):
+        grouped_kmeans(x, 40, 4, scratch=tmp_path / "cut", signature="run")
+    monkeypatch.setattr(retrieval.WordsWorker, "__call__",
+                        lambda self, keys: learned.extend(keys) or real_call(self, keys))
+    assert torch.equal(grouped_kmeans(x, 40, 4, scratch=tmp_path / "cut", signature="run"), whole)
+    assert learned == ["group-0", "group-1", "group-2", "group-3"]  # the first two once, before the interruption
 
 
 def test_local_to_float_unpacks_binary_to_signs():
