@@ -38,9 +38,12 @@ Reconstruction = Any
 logger = logging.getLogger("sekd")
 
 #: The closing's triangulate-and-adjust passes (``mapper_worker.merged_model``): the chain holds at most
-#: ``order_first_max_photos`` photos, whose seams two passes at 16 px close (a third, at 32 px, is for the weak
-#: seams of walks of thousands of photos; on the generated 100-photo walk one pass or two give the same AUC@5).
-CLOSE_PASSES = 2
+#: ``order_first_max_photos`` photos, whose clusters' own adjustments leave seams one pass at 16 px closes (the
+#: second and third passes are for the seams of walks of thousands of photos). One pass against two, pose AUC@5:
+#: generated 100-photo walk 0.99612 / 0.99616, 250-photo walk with every building twice 0.99601 / 0.99594, temples
+#: of 24 and 31 photos 0.99375 / 0.99377 and 0.99626 / 0.99627; the second pass cost 7-8 s at 97 photos
+#: (docs/experiments.md, sections 44 and 45).
+CLOSE_PASSES = 1
 
 
 def order_first(s: Reconstruction) -> bool:
