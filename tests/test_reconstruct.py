@@ -1,5 +1,7 @@
 """Reconstruction: pycolmap glue, a synthetic scene with known poses, failure explanations, sacre_coeur."""
 import json
+import logging
+import shutil
 from pathlib import Path
 
 import cv2
@@ -458,6 +460,20 @@ def test_sacre_coeur_rerun_reuses_features_and_matches(sacre_coeur):
     # A different feature setting is refused rather than mixed into the existing files.
     result = CliRunner().invoke(sekd, args + ["--max-keypoints", "3000"])
     assert result.exit_code == 1 and "was made with a different configuration" in result.output
+
+
+def test_sacre_coeur_in_a_moved_folder_keeps_its_refinement_and_verification(sacre_coeur, tmp_path, caplog):
+    """A project folder moved elsewhere (the files' times kept, as ``mv`` keeps them) is not refined or verified
+    again: the caches name their inputs without the folder."""
+    out, args, _ = sacre_coeur
+    moved = shutil.copytree(out, tmp_path / "moved", copy_function=shutil.copy2)
+    refined = created(moved / "features-refined.h5")
+    caplog.set_level(logging.INFO, logger="sekd")
+    result = CliRunner().invoke(sekd, [str(moved) if a == str(out) else a for a in args])
+    assert result.exit_code == 0, result.output
+    assert "refined keypoints up to date, reused" in caplog.text
+    assert "as an earlier run with the same inputs verified them" in caplog.text
+    assert created(moved / "features-refined.h5") == refined
 
 
 def test_run_mapper_in_a_child_gives_the_same_model(synthetic, tmp_path):

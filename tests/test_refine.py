@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 
 import cv2
 import h5py
@@ -151,6 +152,27 @@ def test_refinement_is_reused_until_its_inputs_or_settings_change(warped_pair):
     assert output.stat().st_mtime_ns == stamp
     refine_keypoints(features, matches, [("a.png", "b.png")], images, output, RefineConfig(patch_radius=5), progress=False)
     assert output.stat().st_mtime_ns != stamp and not list(root.glob("reuse.h5.*.tmp"))
+
+
+def test_refinement_in_a_moved_folder_is_reused(warped_pair, tmp_path):
+    """The signature names its input files without their folder: a project folder moved elsewhere (``mv`` keeps
+    the files' times) keeps its refined keypoints; a copy with new times refines again."""
+    root, images, features, matches, _ = warped_pair
+    project = tmp_path / "project"
+    project.mkdir()
+    for path in (features, matches):
+        shutil.copy2(path, project / path.name)
+    output = refine_keypoints(project / features.name, project / matches.name, [("a.png", "b.png")], images,
+                              project / "refined.h5", progress=False)
+    stamp = output.stat().st_mtime_ns
+    moved = shutil.move(project, tmp_path / "renamed")
+    again = refine_keypoints(moved / features.name, moved / matches.name, [("a.png", "b.png")], images,
+                             moved / "refined.h5", progress=False)
+    assert again.stat().st_mtime_ns == stamp
+    os.utime(moved / matches.name)  # the matches written again: refined again
+    refine_keypoints(moved / features.name, moved / matches.name, [("a.png", "b.png")], images, moved / "refined.h5",
+                     progress=False)
+    assert again.stat().st_mtime_ns != stamp
 
 
 def test_refinement_without_pairs_keeps_every_keypoint(warped_pair):
