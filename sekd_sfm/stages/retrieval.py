@@ -241,8 +241,9 @@ def grouped_kmeans(x: torch.Tensor, k: int, groups: int, iterations: int = 20, s
     run on ``executor`` (``WordsWorker``; in group order in the result).
 
     ``scratch``: a folder for the files the workers read (the points, their groups) and the finished groups, which
-    a call with the same ``signature`` reuses (an interrupted run); default: a temporary folder, signature: a digest
-    of the points and settings."""
+    a call with the same ``signature`` reuses (an interrupted run); on a Ray cluster every node must see it at the
+    same path (as the features: docs/cluster.md). Default: a temporary folder (a local executor), signature: a
+    digest of the points and settings."""
     top = kmeans(x, groups, iterations, seed)
     assign = _nearest_centroid(x, top)
     shares = share_words(torch.bincount(assign, minlength=groups).tolist(), k)
@@ -382,7 +383,8 @@ def _describe_all(features: Path, output: Path, config: RetrievalConfig, identit
     if vocab is None:
         started = time.perf_counter()
         vocab = learn_vocabulary(features, names, config, executor, parts, identity)
-        groups = f" in {config.vocabulary_groups} groups" if config.vocabulary_groups > 1 else ""
+        groups = min(config.vocabulary_groups, len(vocab.centroids))  # as learn_vocabulary splits the words
+        groups = f" in {groups} groups" if groups > 1 else ""
         logger.info("%s: vocabulary of %d words learned%s in %.1f s", output, len(vocab.centroids), groups,
                     time.perf_counter() - started)
         _save_vocabulary(parts, identity, vocab)
