@@ -219,6 +219,15 @@ def test_resume_describes_only_new_images_and_config_change_recomputes(tmp_path,
     assert sorted(p.name for p in tmp_path.iterdir() if p.suffix != ".lock") == ["f.global.h5", "f.h5"]
 
 
+def test_an_up_to_date_file_opens_no_executor(tmp_path, monkeypatch):
+    """Nothing to describe: the executor (a Ray cluster with ``--executor ray``) is not opened at all."""
+    images, _ = scene_collection(scenes=2, per_scene=3, distractors=0)
+    features = feature_file(tmp_path / "f.h5", images)
+    compute_global_descriptors(features, SMALL, progress=False)
+    monkeypatch.setattr(retrieval, "using", lambda *a, **k: pytest.fail("an executor was opened"))
+    compute_global_descriptors(features, SMALL, progress=False, executor="ray")
+
+
 def test_interrupted_run_keeps_finished_images_and_its_vocabulary(tmp_path, monkeypatch):
     images, _ = scene_collection(scenes=2, per_scene=4, distractors=2)
     features = feature_file(tmp_path / "f.h5", images)

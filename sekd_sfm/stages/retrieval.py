@@ -353,8 +353,7 @@ def compute_global_descriptors(features: str | Path, config: RetrievalConfig | N
     identity, names = _identity(features, config), ff.list_keys(features)
     with exclusive_lock(output, what="global descriptors file"):
         try:
-            with using(executor) as runner:  # one for the vocabulary and the VLADs: a Ray cluster is joined once
-                _describe_all(features, output, config, identity, names, progress, runner)
+            _describe_all(features, output, config, identity, names, progress, executor)
         except OSError as exc:
             raise SekdError(f"{output}: global descriptors failed ({exc}); fix the cause (disk space, permissions) "
                             "and rerun: images already described are kept") from exc
@@ -375,31 +374,40 @@ class VladWorker:
 
 
 def _describe_all(features: Path, output: Path, config: RetrievalConfig, identity: str, names: list[str],
-                  progress: bool, executor: Executor) -> None:
+                  progress: bool, executor: str | Executor) -> None:
     vocab, stored = _read_existing(output, identity)
     parts = output.with_name(output.name + ".parts")
-    if vocab is None:
-        vocab = _vocabulary_in_progress(parts, identity)
-    if vocab is None:
-        started = time.perf_counter()
-        vocab = learn_vocabulary(features, names, config, executor, parts, identity)
-        groups = min(config.vocabulary_groups, len(vocab.centroids))  # as learn_vocabulary splits the words
-        groups = f" in {groups} groups" if groups > 1 else ""
-        logger.info("%s: vocabulary of %d words learned%s in %.1f s", output, len(vocab.centroids), groups,
-                    time.perf_counter() - started)
-        _save_vocabulary(parts, identity, vocab)
-    done = set(stored)
-    todo = [n for n in names if n not in done]
+    todo = [n for n in names if n not in set(stored)]
     if todo or set(stored) != set(names) or not output.is_file():
-        parts.mkdir(parents=True, exist_ok=True)
-        results = PairResults(parts / "descriptors.h5", PARTS_FORMAT, _vocab_id(vocab), max_items=256)
-        stage = Stage(name="global descriptors", worker=VladWorker, args=(str(features.resolve()), vocab),
-                      batches=results.missing(todo), output=results.path, write_group=write_pair_group,
-                      unit="img", items="images", verb="described", joinable=True, per_task=IMAGES_PER_TASK)
-        results.run(stage, executor, progress)
+        # One executor for the vocabulary and the VLADs (a Ray cluster joined once), opened only for work: an
+        # up-to-date file needs no cluster.
+        with using(executor) as runner:
+            if vocab is None:
+                vocab = _vocabulary_in_progress(parts, identity)
+            if vocab is None:
+                vocab = _learned_vocabulary(features, output, parts, config, identity, names, runner)
+            parts.mkdir(parents=True, exist_ok=True)
+            results = PairResults(parts / "descriptors.h5", PARTS_FORMAT, _vocab_id(vocab), max_items=256)
+            stage = Stage(name="global descriptors", worker=VladWorker, args=(str(features.resolve()), vocab),
+                          batches=results.missing(todo), output=results.path, write_group=write_pair_group,
+                          unit="img", items="images", verb="described", joinable=True, per_task=IMAGES_PER_TASK)
+            results.run(stage, runner, progress)
         _merge(output, identity, vocab, stored, results.path, set(names))
     shutil.rmtree(parts, ignore_errors=True)  # everything in it is now in the output
     logger.info("%s: %d global descriptors (%d new)", output, len(names), len(todo))
+
+
+def _learned_vocabulary(features: Path, output: Path, parts: Path, config: RetrievalConfig, identity: str,
+                        names: list[str], executor: Executor) -> Vocabulary:
+    """``learn_vocabulary`` on ``executor``, logged and saved in ``parts`` (an interrupted run's images stay valid)."""
+    started = time.perf_counter()
+    vocab = learn_vocabulary(features, names, config, executor, parts, identity)
+    groups = min(config.vocabulary_groups, len(vocab.centroids))  # as learn_vocabulary splits the words
+    groups = f" in {groups} groups" if groups > 1 else ""
+    logger.info("%s: vocabulary of %d words learned%s in %.1f s", output, len(vocab.centroids), groups,
+                time.perf_counter() - started)
+    _save_vocabulary(parts, identity, vocab)
+    return vocab
 
 
 def _merge(output: Path, identity: str, vocab: Vocabulary, stored: list[str], described: Path, keep: set[str]) -> None:
