@@ -6,12 +6,16 @@
 # iproute2), then reconstructs the walk with `--executor local --num-threads 1` and with
 # `--executor ray --num-threads 1`, ROUNDS times each, alternately. Per run: wall time, the stage
 # table of stats.json (seconds, where each stage ran), registered photos and pose AUC@5 against the
-# true cameras. The cluster is stopped by the namespace's PIDs, also on failure.
+# true cameras. The cluster is stopped by the namespace's PIDs, also on failure. ALL_CORES=1 adds,
+# each round, the same run locally on every core of this machine (no --num-threads: local worker
+# processes, torch and the adjustments on all threads): what this machine gives with every core, the
+# reference for the cluster of as many CPUs.
 # Results: $OUT/bench_ray_reconstruct.txt and .json (numbers in docs/cluster.md).
 #
 # Usage: scripts/bench_ray_reconstruct.sh [N_PHOTOS]
 #   OUT=folder      work folder (default: a new temporary folder); a scene already there is reused
 #   ROUNDS=1        local/ray pairs of runs
+#   ALL_CORES=1     also a local run on all cores each round
 #   ARGS="..."      more options of both runs, e.g. ARGS="--mapper-type hierarchical --mapper
 #                   clustering_options.leaf_max_num_images=50" (clusters of 50 photos, mapped on the workers)
 set -euo pipefail
@@ -39,13 +43,14 @@ ip netns exec "$NS" ray start --head --port "$PORT" --include-dashboard=false --
   >"$OUT/ray_head.log" 2>&1
 ip netns exec "$NS" ray start --address "127.0.0.1:$PORT" "${COMMON[@]}" >"$OUT/ray_node.log" 2>&1
 
-run() {  # run NAME CMD...: reconstruct the scene into $OUT/NAME; prints its wall time (s)
-  local name=$1; shift
+run() {  # run NAME THREADS CMD...: reconstruct the scene into $OUT/NAME (THREADS: --num-threads, "all": none)
+  local name=$1 threads=$2; shift 2
   local t0
   rm -rf "${OUT:?}/$name"
   t0=$(date +%s.%N)
+  [ "$threads" = all ] || set -- "$@" --num-threads "$threads"
   # shellcheck disable=SC2086  # ARGS: options split on spaces
-  "$@" "$SCENE/images" -o "$OUT/$name" --num-threads 1 --no-progress ${ARGS:-} >"$OUT/$name.log" 2>&1
+  "$@" "$SCENE/images" -o "$OUT/$name" --no-progress ${ARGS:-} >"$OUT/$name.log" 2>&1
   echo "$(date +%s.%N) - $t0" | bc -l
 }
 
@@ -53,19 +58,20 @@ echo "# sekd reconstruct: $N generated photos; $(nproc) cores; $(date -u +%FT%TZ
   | tee "$REPORT"
 WALLS=()
 for round in $(seq "$ROUNDS"); do
-  WALLS+=("local$round=$(run "local$round" sekd reconstruct)")
-  WALLS+=("ray$round=$(run "ray$round" ip netns exec "$NS" sekd reconstruct --executor ray --ray-address "127.0.0.1:$PORT")")
+  WALLS+=("local$round=$(run "local$round" 1 sekd reconstruct)")
+  WALLS+=("ray$round=$(run "ray$round" 1 ip netns exec "$NS" sekd reconstruct --executor ray --ray-address "127.0.0.1:$PORT")")
+  [ "${ALL_CORES:-0}" = 1 ] && WALLS+=("cores$round=$(run "cores$round" all sekd reconstruct)")
 done
 echo "# load after: $(cut -d' ' -f1-3 /proc/loadavg)" | tee -a "$REPORT"
 
-export COMMAND="ROUNDS=$ROUNDS ARGS=\"${ARGS:-}\" scripts/bench_ray_reconstruct.sh $N"  # for the record
+export COMMAND="ROUNDS=$ROUNDS ALL_CORES=${ALL_CORES:-0} ARGS=\"${ARGS:-}\" scripts/bench_ray_reconstruct.sh $N"  # the record
 python - "$OUT" "$SCENE" "${WALLS[@]}" <<'EOF' | tee -a "$REPORT"
 import json, os, sys
 from pathlib import Path
 from sekd_sfm.bench.scale.covisibility import read_covisibility
 from sekd_sfm.bench.scale.run import evaluate_model
 from sekd_sfm.bench.scale.scene import read_scene
-from sekd_sfm.runtime import run_record
+from sekd_sfm.runtime import run_record, usable_cores
 
 out, scene_dir = Path(sys.argv[1]), Path(sys.argv[2])
 walls = dict(arg.split("=") for arg in sys.argv[3:])
@@ -82,9 +88,12 @@ for name, wall in walls.items():
     for row in stats["stages"]:
         print(f"    {row['stage']:<16s} {row['seconds']:8.1f}  {row['ran_on']}")
 for round in sorted({name[-1] for name in walls}):
-    local, ray = runs.get(f"local{round}"), runs.get(f"ray{round}")
+    local, ray, cores = runs.get(f"local{round}"), runs.get(f"ray{round}"), runs.get(f"cores{round}")
     if local and ray:
         print(f"round {round}: Ray {local['wall_s'] / ray['wall_s']:.2f}x faster than local")
+    if local and cores:
+        print(f"round {round}: local on all {usable_cores()} cores {local['wall_s'] / cores['wall_s']:.2f}x faster "
+              "than on one")
 record = {**run_record(), "command": os.environ["COMMAND"]}
 (out / "bench_ray_reconstruct.json").write_text(json.dumps({"record": record, "runs": runs}, indent=1))
 EOF

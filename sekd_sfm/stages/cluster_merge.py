@@ -164,9 +164,9 @@ def seam_options(options, tolerance_px: float = SEAM_MAX_ERROR_PX):
     return relaxed
 
 
-def assemble(piece: Piece, database: str, image_dir: str, options, scratch: Path, pycolmap):
+def assemble(piece: Piece, database: str, image_dir: str, options, scratch: Path, pycolmap, triangulate: bool = True):
     """A Reconstruction of ``piece``'s photos at its poses and intrinsics, its points triangulated from
-    ``database`` with the poses held (``triangulate_held``)."""
+    ``database`` with the poses held (``triangulate_held``); ``triangulate=False``: the poses alone, no point."""
     cache_options = pycolmap.DatabaseCacheOptions()
     with open_database(database) as db:
         names = {image.name for image in db.read_all_images() if image.image_id in piece.poses}
@@ -183,7 +183,7 @@ def assemble(piece: Piece, database: str, image_dir: str, options, scratch: Path
         image = model.image(image_id)
         model.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(pose)
         model.register_frame(image.frame_id)
-    return triangulate_held(model, database, image_dir, options, scratch, pycolmap)
+    return triangulate_held(model, database, image_dir, options, scratch, pycolmap) if triangulate else model
 
 
 def triangulate_held(model, database: str, image_dir: str, options, scratch: Path, pycolmap,
