@@ -12,8 +12,10 @@ from sekd_sfm.errors import SekdError
 from sekd_sfm.files import features as ff
 from sekd_sfm.files import matches as mf
 from sekd_sfm.files import partstore
+from sekd_sfm.runtime import exact_sqrt
 from sekd_sfm.stages.match import (
     MatchConfig,
+    _select,
     augment_cols,
     augment_rows,
     match_batch,
@@ -95,6 +97,29 @@ def test_empty_reference(d0, d1):
 def test_single_candidate_passes_ratio_with_score_one():
     matches, scores = match_descriptors(A[:2], B[1:2], "both", 0.5)
     assert matches.tolist() == [-1, 0] and scores.tolist() == [0.0, 1.0]
+
+
+def test_scores_and_ratio_test_use_correctly_rounded_roots():
+    """Scores 1 - d1/d2 and the ratio test from IEEE square roots of the squared distances: torch's float32 sqrt
+    is 1 ulp off for some values on AVX-512 CPUs, and not the same values in every process, so two runs of one
+    command flipped matches at the ratio test's border."""
+    g = torch.Generator().manual_seed(0)
+    n = 20_000
+    best = torch.rand(1, n, generator=g) * 1e4
+    second = best + torch.rand(1, n, generator=g) * 1e3 + 1
+    arg = torch.arange(n)[None]
+    matches, scores = _select(best, arg, second, best.clone(), False, "both", 0.95)  # each the nearest of its column
+    d1, d2 = np.sqrt(best.numpy()[0]), np.sqrt(second.numpy()[0])
+    keep = d1 < np.float32(0.95) * d2
+    assert 0 < keep.sum() < n
+    assert np.array_equal(matches.numpy()[0], np.where(keep, np.arange(n), -1))
+    assert np.array_equal(scores.numpy()[0], np.where(keep, 1 - d1 / d2, np.float32(0)))
+
+
+def test_exact_sqrt_is_numpys_and_reads_negatives_as_zero():
+    x = torch.rand(50_000, generator=torch.Generator().manual_seed(1)) * 1e5
+    assert np.array_equal(exact_sqrt(x).numpy(), np.sqrt(x.numpy())) and exact_sqrt(x).dtype == torch.float32
+    assert exact_sqrt(torch.tensor([-1.0, 0.0, 4.0])).tolist() == [0.0, 0.0, 2.0]
 
 
 def test_mixed_descriptor_types_refused():

@@ -31,7 +31,7 @@ from ..execution import Executor, RayOptions, Result, Stage, using
 from ..files import features as ff
 from ..files import locking, partstore
 from ..files import matches as mf
-from ..runtime import package_versions, resolve_device, set_num_threads
+from ..runtime import exact_sqrt, package_versions, resolve_device, set_num_threads
 from .pairs import Pair, read_pairs
 
 logger = logging.getLogger("sekd")
@@ -200,7 +200,7 @@ def _select(best, arg, second, col_best, binary, mode, ratio):
     keep = torch.isfinite(best)
     if mode in ("mnn", "both"):
         keep &= _mutual(best, arg, col_best)
-    d1, d2 = (best, second) if binary else (best.clamp_min(0).sqrt(), second.clamp_min(0).sqrt())
+    d1, d2 = (best, second) if binary else (exact_sqrt(best), exact_sqrt(second))
     if mode in ("ratio", "both"):
         keep &= d1 < ratio * d2
     # Score = ratio margin; an unmatched second neighbour (d2 = inf) gives 1, equal distances 0.

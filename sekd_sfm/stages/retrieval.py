@@ -52,6 +52,7 @@ from ..files import features as ff
 from ..files.atomic import atomic_output
 from ..files.locking import exclusive_lock
 from ..files.pairresults import PairResults, write_pair_group
+from ..runtime import exact_sqrt
 
 logger = logging.getLogger("sekd")
 FORMAT = "sekd-global"
@@ -284,7 +285,7 @@ def vlad(descriptors: np.ndarray, vocab: Vocabulary) -> np.ndarray:
         assign = _nearest_centroid(x, centroids)
         out.index_add_(0, assign, x - centroids[assign])
     out = torch.nn.functional.normalize(out, dim=1).flatten()  # intra-normalisation: no cluster dominates
-    out = out.sign() * out.abs().sqrt()  # power law: damps bursts of repeated structure
+    out = out.sign() * exact_sqrt(out.abs())  # power law: damps bursts of repeated structure
     return torch.nn.functional.normalize(out, dim=0).numpy()
 
 
