@@ -437,6 +437,17 @@ def test_sacre_coeur_registers_at_least_9_of_10(sacre_coeur):
     assert pycolmap.Reconstruction(str(out / "model")).num_reg_images() == stats["model"]["registered_images"]
 
 
+def test_sacre_coeur_names_are_no_capture_order(sacre_coeur):
+    """Flickr ids in the names and nearly every pair verified: the names look like an order (89 % of consecutive
+    photos verified) but say nothing of overlap, so the photos are mapped all at once, not in that order (which
+    folded the model: 11 strong pairs contradicting it)."""
+    out, _, result = sacre_coeur
+    assert "the names are no capture order" in result.output
+    stats = json.loads((out / "stats.json").read_text())
+    assert (stats.get("sequence") or {}).get("reason") != "ordered"
+    assert stats["model_check"][0]["strong_contradicting"] <= 3
+
+
 def created(path) -> str:
     with h5py.File(path) as f:
         return str(f.attrs["created"])

@@ -20,7 +20,9 @@ from sekd_sfm.stages.sequence import (
     chain_database,
     disagreeing_pairs,
     far_pairs,
+    is_ordered,
     linked_share,
+    order_contrast,
     remap_reason,
     verified_pairs,
 )
@@ -198,6 +200,31 @@ def test_linked_share_counts_consecutive_pairs():
     pairs = [VerifiedPair(1, 2, "a", "b", 50, 1), VerifiedPair(2, 3, "b", "c", 50, 1), VerifiedPair(1, 4, "a", "d", 50, 3)]
     assert linked_share(pairs) == pytest.approx(2 / 3)
     assert far_pairs(pairs, 2) == pairs[2:]
+
+
+def _pairs(inliers_by_gap: dict[int, list[int]]) -> list[VerifiedPair]:
+    """Verified pairs of photos ``gap`` apart with the given inlier counts (names and ids made up)."""
+    pairs = []
+    for gap, counts in inliers_by_gap.items():
+        for k, inliers in enumerate(counts):
+            pairs.append(VerifiedPair(k, k + gap, f"{k:03d}", f"{k + gap:03d}", inliers, gap))
+    return pairs
+
+
+def test_an_order_counts_only_where_neighbours_share_more_than_far_photos():
+    config = SequenceConfig()
+    # A walk: the next photo shares hundreds of inliers, photos far apart a few look-alike ones.
+    walk = _pairs({1: [900, 850, 1000], 2: [600, 640], 5: [40, 30], 9: [25]})
+    assert order_contrast(walk, config.window) == pytest.approx(900 / 30)
+    assert is_ordered(1.0, order_contrast(walk, config.window), config)
+    # Ten photos of one facade named by photo-site ids (sacre_coeur): every pair verifies, the next name no
+    # better than any other.
+    facade = _pairs({1: [54, 40, 60], 2: [114, 90], 5: [170, 160], 8: [180]})
+    assert order_contrast(facade, config.window) == pytest.approx(54 / 170)
+    assert not is_ordered(1.0, order_contrast(facade, config.window), config)
+    assert order_contrast(_pairs({1: [100], 2: [80]}), config.window) == float("inf")  # no far pair: no evidence
+    assert order_contrast(_pairs({5: [100]}), config.window) == 0.0  # no consecutive pair
+    assert not is_ordered(0.5, float("inf"), config)  # too few neighbours linked, however strong
 
 
 class _Model:

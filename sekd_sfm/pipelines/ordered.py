@@ -21,8 +21,10 @@ from ..stages.sequence import (
     chain_database,
     disagreeing_pairs,
     drop_pairs,
+    is_ordered,
     linked_share,
     listed_pairs,
+    order_contrast,
     rank,
     registered,
     remap_reason,
@@ -68,8 +70,12 @@ def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: d
     models (largest first), ``s.database`` replaced by the pairs they were made from. None when the photos are no
     ordered capture or the chain leaves photos out: then all pairs are mapped at once."""
     config = s.config.sequence
-    linked = linked_share(verified_pairs(s.database, min_num_matches(s.options)))
-    if linked < config.min_linked:
+    linked, contrast = _order_evidence(s)
+    if not is_ordered(linked, contrast, config):
+        if linked >= config.min_linked:  # said: names that look like an order (numbers) but are not one
+            logger.info("capture order: %.0f%% of consecutive photos verified, but they share no more than photos "
+                        "far apart (median inliers %.2f times theirs): the names are no capture order, all pairs "
+                        "mapped at once", 100 * linked, contrast)
         return None
     photos = _photos_with_pairs(s)
     scratch = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=run.out))
@@ -124,9 +130,9 @@ def sequence(run: Run, s: Reconstruction) -> Reconstruction:
     reason = remap_reason(s.models, check["suspect"], photos, config)
     if reason is None:
         return s
-    linked = linked_share(verified_pairs(s.database, min_num_matches(s.options)))
-    if linked < config.min_linked:
-        s.stats["sequence"] = sequence_record(reason, linked, config, remapped=False)
+    linked, contrast = _order_evidence(s)
+    if not is_ordered(linked, contrast, config):
+        s.stats["sequence"] = sequence_record(reason, linked, config, remapped=False, contrast=round(contrast, 3))
         return s
     # Said now, not only with the outcome: the remap maps the collection twice more (at 2,000 photos, most of a run).
     logger.info("capture order: the model looks %s (its largest of %d holds %d of the %d photos with a verified "
@@ -172,6 +178,12 @@ def _map_raw(run: Run, s: Reconstruction, database: Path) -> list:
     mapped."""
     return run_mapper(database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
                       final_filter=s.config.final_filter, executor=run.executor)
+
+
+def _order_evidence(s: Reconstruction) -> tuple[float, float]:
+    """``linked_share`` and ``order_contrast`` of the verified pairs of ``s.database``."""
+    pairs = verified_pairs(s.database, min_num_matches(s.options))
+    return linked_share(pairs), order_contrast(pairs, s.config.sequence.window)
 
 
 def _photos_with_pairs(s: Reconstruction) -> int:

@@ -215,6 +215,10 @@ def sequence_line(record: dict) -> str:
         return _ordered_line(record)
     why = "folded" if record["reason"] == "folded" else "split"
     if not record.get("remapped"):
+        if record["linked"] >= record["config"]["min_linked"]:  # linked, but the order says nothing of overlap
+            return (f"the model is {why}; the names are no capture order ({record['linked']:.0%} of consecutive "
+                    "photos verified, but they share no more inliers than photos far apart: "
+                    f"{record.get('contrast', 0):.2f} times theirs), so it stays")
         return (f"the model is {why}; the photos are no ordered capture ({record['linked']:.0%} of consecutive "
                 f"photos verified, {record['config']['min_linked']:.0%} needed), so it stays")
     models = record["models"]

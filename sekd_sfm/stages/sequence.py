@@ -56,6 +56,14 @@ class SequenceConfig:
     #: The photos count as an ordered capture when at least this share of consecutive photos (those with a
     #: verified pair) are a verified pair.
     min_linked: float = 0.8
+    #: ... and when photos next to each other in that order share more than photos far apart: the median inliers of
+    #: consecutive pairs over those of pairs more than ``window`` apart must exceed this. Photos named by something
+    #: else than their order (sacre_coeur's Flickr ids) link their neighbours as well, when nearly every pair of a
+    #: few photos of one facade verifies (89 % of consecutive ones), but no better than any other pair (median 54
+    #: inliers against 170); mapped in that order their model folded (11 strong pairs contradicting it). Walks,
+    #: turntables and fountain-P11: 2.6 to 8 with SEKD, a 24-photo temple with SIFT 1.3 (docs/experiments.md,
+    #: section 48).
+    min_order_contrast: float = 1.0
     #: A split model is mapped again when its largest model leaves out more than this share of the photos.
     max_left_out: float = 0.05
     #: Distance (px, Sampson) within which a far pair's inlier fits the chain's poses: twice the verification's,
@@ -108,6 +116,21 @@ def linked_share(pairs: list[VerifiedPair]) -> float:
     if len(photos) < 3:
         return 0.0
     return sum(pair.gap == 1 for pair in pairs) / (len(photos) - 1)
+
+
+def order_contrast(pairs: list[VerifiedPair], window: int) -> float:
+    """The median inliers of consecutive photos' pairs over those of pairs more than ``window`` apart in the capture
+    order: above 1 when the order says which photos overlap (inf without far pairs, 0 without consecutive ones)."""
+    consecutive = [pair.inliers for pair in pairs if pair.gap == 1]
+    far = [pair.inliers for pair in far_pairs(pairs, window)]
+    if not consecutive:
+        return 0.0
+    return float(np.median(consecutive) / np.median(far)) if far else float("inf")
+
+
+def is_ordered(linked: float, contrast: float, config: SequenceConfig) -> bool:
+    """Whether photos with ``linked_share`` and ``order_contrast`` are an ordered capture by ``config``."""
+    return linked >= config.min_linked and contrast > config.min_order_contrast
 
 
 def far_pairs(pairs: list[VerifiedPair], window: int) -> list[VerifiedPair]:
