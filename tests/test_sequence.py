@@ -217,11 +217,12 @@ def test_an_order_counts_only_where_neighbours_share_more_than_far_photos():
     walk = _pairs({1: [900, 850, 1000], 2: [600, 640], 5: [40, 30], 9: [25]})
     assert order_contrast(walk, config.window) == pytest.approx(900 / 30)
     assert is_ordered(1.0, order_contrast(walk, config.window), config)
-    # Ten photos of one facade named by photo-site ids (sacre_coeur): every pair verifies, the next name no
-    # better than any other.
+    # Ten photos of one facade named by photo-site ids (sacre_coeur): every pair verifies, the next name sharing
+    # less than far ones.
     facade = _pairs({1: [54, 40, 60], 2: [114, 90], 5: [170, 160], 8: [180]})
     assert order_contrast(facade, config.window) == pytest.approx(54 / 170)
     assert not is_ordered(1.0, order_contrast(facade, config.window), config)
+    assert is_ordered(1.0, order_contrast(_pairs({1: [500, 500], 6: [500]}), config.window), config)  # a tie: kept
     assert order_contrast(_pairs({1: [100], 2: [80]}), config.window) == float("inf")  # no far pair: no evidence
     assert order_contrast(_pairs({5: [100]}), config.window) == 0.0  # no consecutive pair
     assert not is_ordered(0.5, float("inf"), config)  # too few neighbours linked, however strong
@@ -253,6 +254,10 @@ def test_the_summary_line_says_what_was_done():
     config = SequenceConfig()
     unordered = sequence_record("split", 0.4, config, remapped=False)
     assert "no ordered capture (40% of consecutive photos verified, 80% needed)" in sequence_line(unordered)
+    named = sequence_record("folded", 0.89, config, remapped=False, contrast=0.32)
+    assert sequence_line(named) == ("the model is folded; the names are no capture order (89% of consecutive photos "
+                                    "verified, but they share fewer inliers than photos far apart: 0.32 times "
+                                    "theirs), so it stays")
     models = {"before": {"suspect": True, "registered": 97}, "chain": {"suspect": False, "registered": 97},
               "remapped": {"suspect": False, "registered": 97}}
     done = sequence_record("folded", 1.0, config, remapped=True, far_pairs=552, dropped=336, dropped_pairs=[],

@@ -146,8 +146,9 @@ chance_option = click.option(
 
 capture_order_option = click.option(
     "--capture-order/--no-capture-order", default=True, show_default=True,
-    help="When the photos' names give an order in which nearly every photo is verified with the next (a walk, a "
-         "turntable, a video's keyframes): map in that order, first the photos at most 3 apart (a chain), then drop "
+    help="When the photos' names give an order in which nearly every photo is verified with the next, and shares "
+         "no less with it than with photos far apart (a walk, a turntable, a video's keyframes; not photo-site ids): "
+         "map in that order, first the photos at most 3 apart (a chain), then drop "
          "the farther pairs that do not fit its poses and triangulate the rest onto them. Look-alikes far apart in a "
          "capture then cannot fold the model. Above 250 photos all pairs are mapped first and only a folded or split "
          "model is mapped again in order. Photos in no order are mapped all at once (a folded model is "

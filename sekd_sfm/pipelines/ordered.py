@@ -5,6 +5,7 @@ order")."""
 from __future__ import annotations
 
 import logging
+import math
 import os
 import shutil
 import tempfile
@@ -73,7 +74,7 @@ def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: d
     linked, contrast = _order_evidence(s)
     if not is_ordered(linked, contrast, config):
         if linked >= config.min_linked:  # said: names that look like an order (numbers) but are not one
-            logger.info("capture order: %.0f%% of consecutive photos verified, but they share no more than photos "
+            logger.info("capture order: %.0f%% of consecutive photos verified, but they share less than photos "
                         "far apart (median inliers %.2f times theirs): the names are no capture order, all pairs "
                         "mapped at once", 100 * linked, contrast)
         return None
@@ -132,7 +133,8 @@ def sequence(run: Run, s: Reconstruction) -> Reconstruction:
         return s
     linked, contrast = _order_evidence(s)
     if not is_ordered(linked, contrast, config):
-        s.stats["sequence"] = sequence_record(reason, linked, config, remapped=False, contrast=round(contrast, 3))
+        s.stats["sequence"] = sequence_record(reason, linked, config, remapped=False,
+                                              contrast=round(contrast, 3) if math.isfinite(contrast) else None)
         return s
     # Said now, not only with the outcome: the remap maps the collection twice more (at 2,000 photos, most of a run).
     logger.info("capture order: the model looks %s (its largest of %d holds %d of the %d photos with a verified "

@@ -217,8 +217,8 @@ def sequence_line(record: dict) -> str:
     if not record.get("remapped"):
         if record["linked"] >= record["config"]["min_linked"]:  # linked, but the order says nothing of overlap
             return (f"the model is {why}; the names are no capture order ({record['linked']:.0%} of consecutive "
-                    "photos verified, but they share no more inliers than photos far apart: "
-                    f"{record.get('contrast', 0):.2f} times theirs), so it stays")
+                    "photos verified, but they share fewer inliers than photos far apart: "
+                    f"{record.get('contrast') or 0:.2f} times theirs), so it stays")
         return (f"the model is {why}; the photos are no ordered capture ({record['linked']:.0%} of consecutive "
                 f"photos verified, {record['config']['min_linked']:.0%} needed), so it stays")
     models = record["models"]

@@ -56,13 +56,13 @@ class SequenceConfig:
     #: The photos count as an ordered capture when at least this share of consecutive photos (those with a
     #: verified pair) are a verified pair.
     min_linked: float = 0.8
-    #: ... and when photos next to each other in that order share more than photos far apart: the median inliers of
-    #: consecutive pairs over those of pairs more than ``window`` apart must exceed this. Photos named by something
+    #: ... and when photos next to each other in that order share no less than photos far apart: the median inliers
+    #: of consecutive pairs over those of pairs more than ``window`` apart must reach this. Photos named by something
     #: else than their order (sacre_coeur's Flickr ids) link their neighbours as well, when nearly every pair of a
-    #: few photos of one facade verifies (89 % of consecutive ones), but no better than any other pair (median 54
-    #: inliers against 170); mapped in that order their model folded (11 strong pairs contradicting it). Walks,
-    #: turntables and fountain-P11: 2.6 to 8 with SEKD, a 24-photo temple with SIFT 1.3 (docs/experiments.md,
-    #: section 48).
+    #: few photos of one facade verifies (89 % of consecutive ones), but with fewer inliers than pairs far apart
+    #: (median 54 against 170); mapped in that order their model folded (11 strong pairs contradicting it). Walks,
+    #: turntables and fountain-P11: 2.6 to 8 with SEKD, a 24-photo temple with SIFT 1.3, a generated arc whose every
+    #: view sees every point 1.0 (docs/experiments.md, section 48).
     min_order_contrast: float = 1.0
     #: A split model is mapped again when its largest model leaves out more than this share of the photos.
     max_left_out: float = 0.05
@@ -120,7 +120,8 @@ def linked_share(pairs: list[VerifiedPair]) -> float:
 
 def order_contrast(pairs: list[VerifiedPair], window: int) -> float:
     """The median inliers of consecutive photos' pairs over those of pairs more than ``window`` apart in the capture
-    order: above 1 when the order says which photos overlap (inf without far pairs, 0 without consecutive ones)."""
+    order: under 1 when the order contradicts which photos overlap (inf without far pairs, 0 without consecutive
+    ones; 1 where every pair shares as much, as in a generated scene every view sees whole)."""
     consecutive = [pair.inliers for pair in pairs if pair.gap == 1]
     far = [pair.inliers for pair in far_pairs(pairs, window)]
     if not consecutive:
@@ -130,7 +131,7 @@ def order_contrast(pairs: list[VerifiedPair], window: int) -> float:
 
 def is_ordered(linked: float, contrast: float, config: SequenceConfig) -> bool:
     """Whether photos with ``linked_share`` and ``order_contrast`` are an ordered capture by ``config``."""
-    return linked >= config.min_linked and contrast > config.min_order_contrast
+    return linked >= config.min_linked and contrast >= config.min_order_contrast
 
 
 def far_pairs(pairs: list[VerifiedPair], window: int) -> list[VerifiedPair]:
