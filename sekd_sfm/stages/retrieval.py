@@ -378,8 +378,9 @@ def _describe_all(features: Path, output: Path, config: RetrievalConfig, identit
                   progress: bool, executor: str | Executor) -> None:
     vocab, stored = _read_existing(output, identity)
     parts = output.with_name(output.name + ".parts")
-    todo = [n for n in names if n not in set(stored)]
-    if todo or set(stored) != set(names) or not output.is_file():
+    done = set(stored)
+    todo = [n for n in names if n not in done]
+    if todo or done != set(names) or not output.is_file():
         # One executor for the vocabulary and the VLADs (a Ray cluster joined once), opened only for work: an
         # up-to-date file needs no cluster.
         with using(executor) as runner:
