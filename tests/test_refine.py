@@ -62,6 +62,60 @@ def test_solve_offsets_hand_computed():
     assert empty.shape == (3, 2) and not empty.any() and none.size == 0
 
 
+def _dense_offsets(num_points, ia, ib, A, t, prior, reweightings, fixed):
+    """``solve_offsets`` the plain way: every equation in one dense matrix, least squares, Huber reweighting."""
+    E, free = len(ia), np.flatnonzero(~fixed)
+    design = np.zeros((2 * E, 2 * num_points))
+    for e in range(E):
+        design[2 * e: 2 * e + 2, 2 * ib[e]: 2 * ib[e] + 2] += np.eye(2)
+        design[2 * e: 2 * e + 2, 2 * ia[e]: 2 * ia[e] + 2] -= A[e]
+    columns = np.stack([2 * free, 2 * free + 1], 1).ravel()
+    design = design[:, columns]
+    weight = np.ones(E)
+    for _ in range(reweightings + 1):
+        w = np.repeat(weight, 2)[:, None]
+        stacked = np.vstack([w * design, prior * np.eye(len(columns))])
+        target = np.concatenate([w[:, 0] * t.ravel(), np.zeros(len(columns))])
+        solution = np.linalg.lstsq(stacked, target, rcond=None)[0]
+        d = np.zeros(2 * num_points)
+        d[columns] = solution
+        d = d.reshape(-1, 2)
+        residual = np.linalg.norm(d[ib] - np.einsum("eij,ej->ei", A, d[ia]) - t, axis=1)
+        weight = 1 / np.maximum(1, residual / 0.25)
+    return d, residual
+
+
+def test_solve_offsets_track_by_track_is_the_least_squares_solution():
+    # Tracks of 1-6 points, one of 70 (over MAX_DENSE_TRACK: the sparse path), fixed points, unmatched points, and
+    # outlying matches for the reweighting: the same shifts as one dense least-squares problem.
+    from sekd_sfm.stages.refine import MAX_DENSE_TRACK
+
+    rng = np.random.default_rng(3)
+    sizes = [2, 2, 3, 4, 5, 6, 2, 3, MAX_DENSE_TRACK + 6]
+    ia, ib, start = [], [], 1  # point 0: unmatched
+    for size in sizes:
+        members = np.arange(start, start + size)
+        extra = rng.integers(0, size, (size, 2))
+        edges = [(members[j], members[j + 1]) for j in range(size - 1)]  # a chain holds the track together,
+        edges += [(members[x], members[y]) for x, y in extra if x != y]  # and more matches within it
+        ia += [x for x, _ in edges]
+        ib += [y for _, y in edges]
+        start += size
+    num_points, ia, ib = start + 1, np.array(ia), np.array(ib)
+    A = np.eye(2) + rng.normal(0, 0.1, (len(ia), 2, 2))
+    t = rng.normal(0, 0.3, (len(ia), 2))
+    t[::7] += 3.0  # wrong matches, weighed down by the reweighting
+    fixed = np.zeros(num_points, bool)
+    fixed[[2, 9, num_points - 20]] = True  # in two short tracks and the long one
+    for fix in (None, fixed):
+        shifts, residual = solve_offsets(num_points, ia, ib, A, t, 0.1, reweightings=2, fixed=fix)
+        expected, expected_residual = _dense_offsets(num_points, ia, ib, A, t, 0.1, 2,
+                                                     fix if fix is not None else np.zeros(num_points, bool))
+        assert np.allclose(shifts, expected, atol=1e-10) and np.allclose(residual, expected_residual, atol=1e-10)
+        assert not shifts[0].any() and not shifts[-1].any()  # unmatched points stay
+    assert not shifts[fixed].any() and np.abs(shifts).max() > 0.1
+
+
 def _texture(x, y):
     """A smooth texture defined everywhere, so a sub-pixel shift of it is exact."""
     return (120 + 40 * np.sin(0.45 * x + 0.3 * y) + 30 * np.cos(0.21 * x - 0.5 * y)

@@ -224,38 +224,141 @@ def solve_offsets(num_points: int, ia: np.ndarray, ib: np.ndarray, A: np.ndarray
     squares plus ``prior * d = 0``, then Huber reweighting (scale 0.25 px) ``reweightings`` times.
     ``fixed`` (``num_points`` bools): points that do not move (their columns leave the system, so ``d`` = 0 there).
 
-    Solved exactly, through the normal equations (SuperLU): the system falls apart into one small block per track,
-    so the factorisation costs about what the matrix does, where an iterative solver (LSQR) needs hundreds of
-    passes over it. Points of no match keep ``d = 0``, the prior's minimum, and leave the system.
+    Solved exactly, through the normal equations, track by track (``TrackSystem``): the system falls apart into
+    one small block per track. Points of no match keep ``d = 0``, the prior's minimum, and leave the system.
     """
-    from scipy import sparse
-    from scipy.sparse.linalg import spsolve
-
     E = len(ia)
     if E == 0:
         return np.zeros((num_points, 2)), np.zeros(0)
-    moving = np.unique(np.concatenate([ia, ib]))
-    if fixed is not None:
-        moving = moving[~fixed[moving]]
+    matched = np.zeros(num_points, bool)
+    matched[ia] = matched[ib] = True
+    moving = np.flatnonzero(matched if fixed is None else matched & ~fixed)
     column = np.full(num_points, -1, np.int64)
     column[moving] = np.arange(len(moving))
-    ca, cb = column[ia], column[ib]  # -1: a fixed point, whose shift (zero) leaves the equations
-    rows = np.arange(E)
-    r = np.concatenate([2 * rows, 2 * rows + 1, 2 * rows, 2 * rows, 2 * rows + 1, 2 * rows + 1])
-    c = np.concatenate([2 * cb, 2 * cb + 1, 2 * ca, 2 * ca + 1, 2 * ca, 2 * ca + 1])
-    v = np.concatenate([np.ones(E), np.ones(E), -A[:, 0, 0], -A[:, 0, 1], -A[:, 1, 0], -A[:, 1, 1]])
-    known = c >= 0
-    system = sparse.csr_matrix((v[known], (r[known], c[known])), shape=(2 * E, 2 * len(moving)))
-    regulariser = sparse.identity(2 * len(moving), format="csc") * prior ** 2
+    system = TrackSystem(len(moving), column[ia], column[ib])  # -1: a fixed point, whose shift (zero) leaves it
     d = np.zeros((num_points, 2))
     weight = np.ones(E)
     for _ in range(reweightings + 1):
-        w2 = np.repeat(weight ** 2, 2)  # each match's weight scales both of its rows' residuals
-        normal = (system.T @ sparse.diags(w2) @ system).tocsc() + regulariser
-        d[moving] = spsolve(normal, system.T @ (w2 * t.ravel()), permc_spec="COLAMD").reshape(-1, 2)
-        residual = np.linalg.norm(d[ib] - np.einsum("eij,ej->ei", A, d[ia]) - t, axis=1)
+        d[moving] = system.solve(A, t, weight ** 2, prior)
+        da, db = d[ia], d[ib]
+        residual = np.hypot(db[:, 0] - A[:, 0, 0] * da[:, 0] - A[:, 0, 1] * da[:, 1] - t[:, 0],
+                            db[:, 1] - A[:, 1, 0] * da[:, 0] - A[:, 1, 1] * da[:, 1] - t[:, 1])
         weight = 1 / np.maximum(1, residual / 0.25)
     return d, residual
+
+
+#: Tracks (connected points) of at most this many points are solved as dense blocks, many at once; larger ones
+#: (wrong matches can chain tracks together) as one sparse system.
+MAX_DENSE_TRACK = 64
+#: Matches per pass of the dense blocks' assembly, which holds 14 numbers per match: bounds its memory (~56 MB).
+ASSEMBLY_MATCHES = 250_000
+#: Entries of the dense blocks assembled at once (32 MB).
+ASSEMBLY_ENTRIES = 4_000_000
+
+
+class TrackSystem:
+    """The normal equations of ``solve_offsets`` for fixed matches, one dense block per track.
+
+    Each match ``e`` ties the shift of point ``b[e]`` to that of ``a[e]``: the equations of different tracks
+    share no unknown, so the ``2k x 2k`` block of a track of ``k`` points is solved on its own, and tracks of
+    one size all at once (a batched LAPACK solve). A sparse factorisation of the whole (SuperLU) cost 1.6 s
+    for the 270,000 matches of 100 photos and 59 s (6.5 GB) for 6.3 million, where the blocks take a
+    fraction of that (docs/experiments.md, section 49).
+
+    ``columns``: unknown points; ``a``, ``b``: each match's columns (``E``; -1: a fixed point, left out).
+    """
+
+    def __init__(self, columns: int, a: np.ndarray, b: np.ndarray):
+        from scipy import sparse
+        from scipy.sparse.csgraph import connected_components
+
+        linked = (a >= 0) & (b >= 0)
+        graph = sparse.coo_matrix((np.ones(int(linked.sum())), (a[linked], b[linked])), shape=(columns, columns))
+        _, track = connected_components(graph, directed=False)
+        size = np.bincount(track)
+        # Columns in order of track size, then track: each size's tracks are one contiguous run of columns.
+        order = np.lexsort((track, size[track]))
+        self.rank = np.empty(columns, np.int64)  # column -> its place in that order
+        self.rank[order] = np.arange(columns)
+        sizes = size[track[order]]
+        self.groups = [(int(k), int(lo), int(hi)) for k, lo, hi in _runs(sizes)]  # (size, first, end) ranks
+        self.columns = columns
+        self.a = np.where(a >= 0, self.rank[np.maximum(a, 0)], -1)
+        self.b = np.where(b >= 0, self.rank[np.maximum(b, 0)], -1)
+        # Matches in column order of their track (a match's points share one), so a run of tracks has a run of them.
+        self.matches = np.argsort(np.where(self.b >= 0, self.b, self.a), kind="stable")
+        self.first = np.searchsorted(np.where(self.b >= 0, self.b, self.a)[self.matches], np.arange(columns + 1))
+
+    def solve(self, A: np.ndarray, t: np.ndarray, w2: np.ndarray, prior: float) -> np.ndarray:
+        """The shifts (``columns x 2``) minimising ``sum w2 |d_b - A d_a - t|^2 + prior^2 |d|^2``."""
+        shifts = np.zeros((self.columns, 2))
+        for k, lo, hi in self.groups:
+            if k > MAX_DENSE_TRACK:
+                shifts[lo:] = self._solve_sparse(lo, A, t, w2, prior)
+                break
+            per_track = (self.first[hi] - self.first[lo]) * k / (hi - lo)  # matches
+            step = k * max(1, min(int(ASSEMBLY_MATCHES / max(per_track, 1)), ASSEMBLY_ENTRIES // (2 * k) ** 2))
+            for start in range(lo, hi, step):
+                shifts[start:min(start + step, hi)] = self._solve_dense(k, start, min(start + step, hi), A, t, w2,
+                                                                        prior)
+        return shifts[self.rank]
+
+    def _solve_dense(self, k: int, lo: int, hi: int, A, t, w2, prior: float) -> np.ndarray:
+        """The shifts of columns ``lo:hi``: whole tracks of ``k`` points each."""
+        e = self.matches[self.first[lo]:self.first[hi]]
+        n, tracks = 2 * k, (hi - lo) // k
+        a, b, w = self.a[e] - lo, self.b[e] - lo, w2[e]
+        (a00, a01), (a10, a11), (t0, t1) = A[e, 0].T, A[e, 1].T, t[e].T
+        # A fixed end (-1) takes no equation: its entries get weight 0, placed at its partner's.
+        wa, wb = np.where(a >= 0, w, 0.0), np.where(b >= 0, w, 0.0)
+        a, b = np.where(a >= 0, a, b), np.where(b >= 0, b, a)
+        wc = np.minimum(wa, wb)
+        # A match adds w [[I, -A], [-A^T, A^T A]] over (d_b, d_a) to its track's block, w [t, -A^T t] to its right side.
+        ra, rb = 2 * (a % k), 2 * (b % k)  # the first row of d_a and d_b within the block
+        block = b // k * n
+        ra_n, rb_n = (block + ra) * n, (block + rb) * n  # rows d_a[0] and d_b[0] of the flattened blocks
+        flat = np.concatenate([rb_n + rb, rb_n + n + rb + 1,
+                               rb_n + ra, rb_n + ra + 1, rb_n + n + ra, rb_n + n + ra + 1,
+                               ra_n + rb, ra_n + n + rb, ra_n + rb + 1, ra_n + n + rb + 1,
+                               ra_n + ra, ra_n + ra + 1, ra_n + n + ra, ra_n + n + ra + 1])
+        c00, c01, c10, c11 = -wc * a00, -wc * a01, -wc * a10, -wc * a11
+        q01 = wa * (a00 * a01 + a10 * a11)
+        value = np.concatenate([wb, wb, c00, c01, c10, c11, c00, c01, c10, c11,
+                                wa * (a00 * a00 + a10 * a10), q01, q01, wa * (a01 * a01 + a11 * a11)])
+        normal = np.bincount(flat, value, minlength=tracks * n * n).reshape(tracks, n, n)
+        normal[:, np.arange(n), np.arange(n)] += prior ** 2
+        rhs = np.bincount(np.concatenate([block + rb, block + rb + 1, block + ra, block + ra + 1]),
+                          np.concatenate([wb * t0, wb * t1, -wa * (a00 * t0 + a10 * t1), -wa * (a01 * t0 + a11 * t1)]),
+                          minlength=tracks * n)
+        return np.linalg.solve(normal, rhs.reshape(tracks, n, 1)).reshape(hi - lo, 2)
+
+    def _solve_sparse(self, lo: int, A, t, w2, prior: float) -> np.ndarray:
+        """The shifts of columns ``lo:`` (the tracks over MAX_DENSE_TRACK points) from one sparse system (SuperLU)."""
+        from scipy import sparse
+        from scipy.sparse.linalg import spsolve
+
+        e = self.matches[self.first[lo]:]
+        cols, E = self.columns - lo, len(e)
+        ca, cb = np.where(self.a[e] >= 0, self.a[e] - lo, -1), np.where(self.b[e] >= 0, self.b[e] - lo, -1)
+        rows = np.arange(E)
+        r = np.concatenate([2 * rows, 2 * rows + 1, 2 * rows, 2 * rows, 2 * rows + 1, 2 * rows + 1])
+        c = np.concatenate([2 * cb, 2 * cb + 1, 2 * ca, 2 * ca + 1, 2 * ca, 2 * ca + 1])
+        v = np.concatenate([np.ones(E), np.ones(E), -A[e, 0, 0], -A[e, 0, 1], -A[e, 1, 0], -A[e, 1, 1]])
+        known = c >= 0
+        system = sparse.csr_matrix((v[known], (r[known], c[known])), shape=(2 * E, 2 * cols))
+        weights = np.repeat(w2[e], 2)
+        normal = (system.T @ sparse.diags(weights) @ system).tocsc()
+        normal += sparse.identity(2 * cols, format="csc") * prior ** 2
+        return spsolve(normal, system.T @ (weights * t[e].ravel()), permc_spec="COLAMD").reshape(-1, 2)
+
+
+def _runs(values: np.ndarray):
+    """``(value, start, end)`` of each run of equal values in ``values`` (sorted)."""
+    if len(values) == 0:
+        return
+    edges = np.flatnonzero(np.diff(values)) + 1
+    starts, ends = np.concatenate([[0], edges]), np.concatenate([edges, [len(values)]])
+    yield from zip(values[starts], starts, ends)
 
 
 class _ImageCache:
