@@ -6,6 +6,7 @@ import shutil
 import numpy as np
 import pytest
 
+from sekd_sfm.execution import LocalExecutor
 from sekd_sfm.stages.chance import (
     ChanceConfig,
     chance_inliers,
@@ -88,7 +89,7 @@ def test_chance_pairs_are_dropped_and_right_ones_kept(database, tmp_path):
     assert verified == 3 and sorted((p.image1, p.image2) for p in weak) == [(1, 2), (1, 3)]
     copy = tmp_path / "copy.db"
     shutil.copy(database, copy)
-    record = check_chance(database, 15, num_threads=2)
+    record = check_chance(database, 15, executor=LocalExecutor(2))
     assert record["verified"] == 3 and record["tested"] == 2 and record["dropped"] == 1
     (dropped,) = record["dropped_pairs"]
     assert dropped["pair"] == ["photo1.jpg", "photo2.jpg"] and dropped["inliers"] == 17 and dropped["matches"] == 100
@@ -98,8 +99,9 @@ def test_chance_pairs_are_dropped_and_right_ones_kept(database, tmp_path):
                    for pair_id, geometry in zip(*db.read_two_view_geometries())}
         assert inliers.get((1, 2), 0) == 0 and len(db.read_matches(1, 2)) == 100  # raw matches stay
         assert inliers[(1, 3)] == 40 and inliers[(2, 3)] == 150
-    # The decisions depend on the pairs only: one thread, another run, the same record.
-    assert check_chance(copy, 15, num_threads=1) == record
+    assert not list(tmp_path.glob("database-chance.h5*"))  # the shuffles' results go once decided
+    # The decisions depend on the pairs only: this process, another run, the same record.
+    assert check_chance(copy, 15, executor=LocalExecutor(1)) == record
 
 
 def test_a_stricter_margin_and_the_inlier_cap(database):

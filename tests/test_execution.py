@@ -89,3 +89,32 @@ def test_a_failing_worker_process_stops_the_run_and_keeps_what_finished(tmp_path
         LocalExecutor(2).run(stage, parts, lambda key, error: None, progress=False)
     kept = partstore.PartStore(stage.output).keys()
     assert kept and kept <= set(keys[:-1])  # the next run computes only the rest
+
+
+def test_results_in_progress_are_read_from_the_part_store_never_copied_into_their_file(tmp_path):
+    # PairResults.compute: the items stay in the part store (Stage.keep_parts), a later run with the same signature
+    # computes only what is missing, and items an earlier version merged into the file still count.
+    import h5py
+
+    from sekd_sfm.files.pairresults import PairResults, write_pair_group
+
+    path = tmp_path / "squares-pairs.h5"
+    results = PairResults(path, "sekd-squares", "inputs-1", max_items=2)
+    stage = Stage(name="squares", worker=Squares, args=(0,), batches=results.missing(["1", "2", "3"]), output=path,
+                  write_group=write_pair_group, joinable=True)
+    first = results.compute(stage, LocalExecutor(1), progress=False)
+    assert {k: int(v["value"][0]) for k, v in first.items()} == {"1": 1, "2": 4, "3": 9}
+    with h5py.File(path, "r") as f:
+        assert len(f) == 0  # nothing copied into the file
+    assert partstore.PartStore(path).keys() == {"1", "2", "3"}
+
+    with h5py.File(path, "a") as f:  # an item merged by an earlier version, then a resumed run
+        write_pair_group(f, "4", {"value": np.array([16]), "pid": np.array([0])})
+    again = PairResults(path, "sekd-squares", "inputs-1", max_items=2)
+    missing = again.missing(["1", "2", "3", "4", "5"])
+    assert missing == [["5"]]
+    second = again.compute(Stage(name="squares", worker=Squares, args=(0,), batches=missing, output=path,
+                                 write_group=write_pair_group, joinable=True), LocalExecutor(1), progress=False)
+    assert {k: int(v["value"][0]) for k, v in second.items()} == {"1": 1, "2": 4, "3": 9, "4": 16, "5": 25}
+    again.remove()
+    assert not path.exists() and not partstore.PartStore(path).root.exists()

@@ -488,9 +488,11 @@ def mark_chance_pairs(database: Path, rows: list[dict], config: PairsBenchConfig
     """Set each row's ``chance``: whether the chance check (``stages.chance``, its defaults) drops the pair. The
     check runs on the database as verification left it, for every method, and changes nothing in it: what it
     would remove is scored, not applied."""
+    from ..execution import LocalExecutor
     from ..stages.chance import find_chance_pairs
 
-    dropped, _ = find_chance_pairs(database, config.min_inliers, seed=config.seed, num_threads=config.num_threads or -1)
+    processes = config.num_threads if config.num_threads and config.num_threads > 0 else None  # None: every core
+    dropped, _ = find_chance_pairs(database, config.min_inliers, seed=config.seed, executor=LocalExecutor(processes))
     names = {frozenset((pair.name1, pair.name2)) for pair in dropped}
     for row in rows:
         row["chance"] = frozenset((row["image0"], row["image1"])) in names

@@ -126,7 +126,7 @@ class RayExecutor:
                 if self.ray is None:
                     self.ray, self.owned = _connect(self.options)
                     self.actors = RunActors(self.ray, _RunActor, self.options)
-                if driver_merges_while_running(self.options):
+                if driver_merges_while_running(self.options) and not stage.keep_parts:
                     merge = partstore.Merge(stage.output, parts, stage.write_group)  # fed as chunks arrive
                     logger.info("Ray: the driver copies the workers' results into the output as they arrive")
                 workers = run_on_ray(self.ray, stage, parts, on_error, options=self.options, progress=progress,
@@ -159,6 +159,8 @@ def using(executor: str | Executor, options: RayOptions | None = None) -> Iterat
 
 def _finish(stage: Stage, parts: partstore.PartStore, attrs: Attrs | None, merge: partstore.Merge | None = None) -> int:
     parts.flush()  # on disk before the merge: a merge that fails or is killed loses nothing
+    if stage.keep_parts:
+        return 0
     return partstore.finish_run(stage.output, parts, attrs() if attrs else None, stage.write_group, stage.items, merge)
 
 

@@ -42,7 +42,7 @@ def run_local(stage: Stage, parts: partstore.PartStore, on_error: OnError, *, pr
             bar.update(1)
     except KeyboardInterrupt:
         bar.close()
-        saved = partstore.finish_run(stage.output, parts, write_group=stage.write_group, what=stage.items)
+        saved = save_interrupted(stage, parts)
         raise Interrupted(f"interrupted: {saved} more {stage.items} saved in {stage.output}; "
                           "run the same command again to resume") from None
     except BaseException:
@@ -51,6 +51,15 @@ def run_local(stage: Stage, parts: partstore.PartStore, on_error: OnError, *, pr
     finally:
         bar.close()
     return used
+
+
+def save_interrupted(stage: Stage, parts: partstore.PartStore) -> int:
+    """What an interrupted run keeps: its finished items merged into the output (the part store's for a stage that
+    keeps its parts); returns the items merged."""
+    if stage.keep_parts:
+        partstore.keep_parts(parts)
+        return 0
+    return partstore.finish_run(stage.output, parts, write_group=stage.write_group, what=stage.items)
 
 
 def processes_for(stage: Stage, processes: int) -> int:

@@ -48,6 +48,7 @@ from ..errors import Interrupted, SekdError
 from ..files import partstore, shards
 from ..files.atomic import write_atomic
 from ..runtime import set_num_threads
+from .local import save_interrupted
 from .ray_connect import RayOptions, _free_cores_here
 from .ray_pool import RunActors, _columns, _stream, _workers, task_size
 from .stage import OnError, Result, Stage, Worker, calls
@@ -447,8 +448,7 @@ def _drain(results: Iterable[dict], stage: Stage, total: int, parts: partstore.P
         bar.close()
         if helper is not None:
             helper.finish(reraise=False)  # its saved items go into this merge
-        saved = merge.finish() if merge is not None else partstore.merge_parts(stage.output, parts,
-                                                                                write_group=stage.write_group)
+        saved = merge.finish() if merge is not None else save_interrupted(stage, parts)
         raise Interrupted(f"interrupted: {saved} more {stage.items} saved in {stage.output}; "
                           "run the same command again to resume") from None
     finally:

@@ -50,6 +50,9 @@ class Stage:
     whether the driver may run ``built`` on some keys while Ray workers start (only for workers
     that compute exactly what Ray's CPU workers compute). ``local_processes``: the worker is single-threaded
     Python and NumPy, so a local run spreads its tasks (``per_task`` batches each) over one process per core.
+    ``keep_parts``: the finished items stay in the output's part store, not merged into ``output``: for a stage's
+    results in progress (``files.pairresults``), which its caller reads from the part store (as safe as the file)
+    and removes once its real output is written, so copying them into HDF5 first would be work thrown away.
     """
 
     name: str
@@ -67,6 +70,7 @@ class Stage:
     built: Worker | None = field(default=None, compare=False, repr=False)
     driver_may_help: bool = False
     local_processes: bool = False
+    keep_parts: bool = False
 
     @property
     def keys(self) -> list[str]:

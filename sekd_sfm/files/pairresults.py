@@ -6,7 +6,8 @@ One HDF5 file beside the stage's real output, one group per item under a digest 
 names may hold '/'; the key is kept as the attribute ``pair``, whatever the item), and the file's ``format`` and
 ``signature`` (what the results were computed from). An executor fills it through the crash-safe
 part store; a killed run's pairs are reused by the next run with the same signature, and the file
-goes once the stage's output holds what it was for::
+goes once the stage's output holds what it was for (``compute`` leaves the items it computed in the part store and
+reads them from there: they are never copied into the file)::
 
     results = PairResults(out / "x-pairs.h5", "sekd-x-pairs", signature)
     stage = Stage(..., batches=results.missing(keys), output=results.path, write_group=write_pair_group)
@@ -17,6 +18,7 @@ goes once the stage's output holds what it was for::
 from __future__ import annotations
 
 import hashlib
+from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -81,10 +83,17 @@ class PairResults:
         return self.path
 
     def compute(self, stage, executor, progress: bool = True) -> dict[str, dict[str, np.ndarray]]:
-        """``run``, then every item's arrays, by key (for results that fit in memory)."""
-        self.run(stage, executor, progress)
-        with h5py.File(self.path, "r") as f:
-            return {str(group.attrs["pair"]): {n: d[()] for n, d in group.items()} for group in f.values()}
+        """``run``, then every item's arrays, by key (for results that fit in memory).
+
+        The items computed now stay in the part store (``Stage.keep_parts``) and are read from there: the caller
+        removes them once its output is written, so copying them into the HDF5 file (one group and its datasets
+        per item, then read back) would be the driver's serial work thrown away.
+        """
+        self.run(replace(stage, keep_parts=True), executor, progress)
+        with h5py.File(self.path, "r") as f:  # items merged by an earlier run
+            found = {str(group.attrs["pair"]): {n: d[()] for n, d in group.items()} for group in f.values()}
+        found.update(self.parts.items())  # the part store's are newer
+        return found
 
     def remove(self) -> None:
         """The file and its parts, once the stage's output holds what they were for."""

@@ -313,7 +313,7 @@ def chance(run: Run, s: Extension) -> Extension:
     """The verified pairs no better than chance dropped (``stages.chance``), as the run that made the model did:
     its decisions on the pairs already there repeat (seeded per pair), so only new pairs can be dropped."""
     floor = two_view_options(s.config.verification, s.config.seed).min_num_inliers  # what verification accepts
-    s.entry["chance"] = check_chance(s.database, floor, s.config.chance, s.config.seed, run.num_threads or -1)
+    s.entry["chance"] = check_chance(s.database, floor, s.config.chance, s.config.seed, run.executor, run.progress)
     return s
 
 

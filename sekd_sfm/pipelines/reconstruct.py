@@ -400,7 +400,7 @@ def verification(run: Run, s: Reconstruction) -> Reconstruction:
 def chance(run: Run, s: Reconstruction) -> Reconstruction:
     """The verified pairs whose inliers chance alone would give dropped (``stages.chance``)."""
     s.stats["chance"] = check_chance(s.database, min_num_matches(s.options), s.config.chance, s.config.seed,
-                                     run.num_threads or -1)
+                                     run.executor, run.progress)
     return s
 
 

@@ -12,22 +12,40 @@ shuffles keep everything but the correspondence itself (both keypoint sets, thei
 photo size), so the most inliers they reach is what chance gives these matches. The pair is
 dropped from the database's verified pairs (its raw matches stay) unless its own inliers exceed
 ``margin`` times that. Seeds derive from the pair's names: the same database gives the same
-decisions in any order and on any number of threads.
+decisions in any order, in any process.
+
+Each pair's shuffles run as an ``execution.Stage`` (``ChanceWorker``) on the run's executor: in worker processes
+on this machine or on Ray workers, which read the pair's keypoints and raw matches from the database (SQLite,
+read-only, as verification's workers do); the driver reads only which pairs to test and decides.
 """
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .colmap import delete_verified_pairs, open_database, require_pycolmap
+from ..execution import Executor, Stage, using
+from ..files import matches as mf
+from ..files.pairresults import PairResults, write_pair_group
+from .colmap import (
+    KeypointCache,
+    delete_verified_pairs,
+    open_database,
+    read_only_database,
+    require_pycolmap,
+    sqlite_matches,
+)
 
 logger = logging.getLogger("sekd")
+
+#: The shuffles' results of a check in progress, beside the database (``<stem>-chance.h5``).
+FORMAT = "sekd-chance-pairs"
+#: Pairs per task: ~3 ms each (four RANSAC runs of 2,000 trials at most), so a task is ~0.1 s.
+PAIRS_PER_TASK = 32
 
 
 @dataclass
@@ -84,24 +102,33 @@ def chance_inliers(points1: np.ndarray, points2: np.ndarray, config: ChanceConfi
     return found
 
 
-def read_weak_pairs(database: str | Path, min_inliers: int, max_inliers: int) -> tuple[list[PairMatches], int]:
-    """The verified pairs of ``database`` with ``min_inliers`` <= inliers < ``max_inliers`` and their putative
-    matches, and the number of verified pairs in all."""
+@dataclass
+class WeakPair:
+    """A verified pair the check tests: image ids and names, its inlier count."""
+
+    image1: int
+    image2: int
+    name1: str
+    name2: str
+    inliers: int
+
+    @property
+    def key(self) -> str:
+        return mf.pair_key(self.name1, self.name2)
+
+
+def read_weak_pairs(database: str | Path, min_inliers: int, max_inliers: int) -> tuple[list[WeakPair], int]:
+    """The verified pairs of ``database`` with ``min_inliers`` <= inliers < ``max_inliers``, and the number of
+    verified pairs in all."""
     pycolmap = require_pycolmap()
     with open_database(database) as db:
         names = {image.image_id: image.name for image in db.read_all_images()}
         verified = [(pycolmap.pair_id_to_image_pair(pair_id), len(geometry.inlier_matches))
                     for pair_id, geometry in zip(*db.read_two_view_geometries())
                     if len(geometry.inlier_matches) >= min_inliers]
-        weak = [(pair, inliers) for pair, inliers in verified if inliers < max_inliers]
-        keypoints = {image_id: np.asarray(db.read_keypoints(image_id), np.float64)[:, :2]
-                     for image_id in sorted({i for pair, _ in weak for i in pair})}
-        pairs = []
-        for (id1, id2), inliers in weak:
-            matches = np.asarray(db.read_matches(id1, id2), np.int64).reshape(-1, 2)
-            pairs.append(PairMatches(id1, id2, names[id1], names[id2], inliers, keypoints[id1][matches[:, 0]],
-                                     keypoints[id2][matches[:, 1]]))
-    return pairs, len(verified)
+    weak = [WeakPair(id1, id2, names[id1], names[id2], inliers)
+            for (id1, id2), inliers in verified if inliers < max_inliers]
+    return weak, len(verified)
 
 
 def chance_level(pair: PairMatches, config: ChanceConfig, seed: int) -> int:
@@ -111,30 +138,61 @@ def chance_level(pair: PairMatches, config: ChanceConfig, seed: int) -> int:
                               stop_at=needed), default=0)
 
 
+class ChanceWorker:
+    """The check's per-pair work (an ``execution.Stage`` worker): for each pair key (``matches.pair_key``), its
+    chance level and putative matches (``level`` = [level, matches]). Built once per process from the pairs to
+    test (``key -> WeakPair``); reads keypoints and matches from ``database`` (SQLite, read-only)."""
+
+    def __init__(self, database: str, pairs: dict[str, WeakPair], config: ChanceConfig, seed: int):
+        self.database, self.pairs, self.config, self.seed = database, pairs, config, seed
+        self.keypoints = KeypointCache()
+
+    def __call__(self, keys: list[str]):
+        with read_only_database(self.database) as db:
+            for key in keys:
+                pair = self.pairs[key]
+                matches = sqlite_matches(db, pair.image1, pair.image2).astype(np.int64)
+                points1 = self.keypoints.get(db, pair.image1)[matches[:, 0]]
+                points2 = self.keypoints.get(db, pair.image2)[matches[:, 1]]
+                level = chance_level(PairMatches(pair.image1, pair.image2, pair.name1, pair.name2, pair.inliers,
+                                                 points1, points2), self.config, self.seed)
+                yield key, {"level": np.array([level, len(matches)], np.int64)}, ""
+
+
 def find_chance_pairs(database: str | Path, min_inliers: int, config: ChanceConfig | None = None, seed: int = 0,
-                      num_threads: int = 1) -> tuple[list[PairMatches], dict]:
+                      executor: str | Executor = "local", progress: bool = False) -> tuple[list[WeakPair], dict]:
     """The verified pairs of ``database`` no better than chance (module doc), and the record: verified pairs, pairs
     tested, dropped (names, inliers, putative matches, chance level), the settings. Changes nothing.
-    ``num_threads`` threads test pairs at once (pycolmap's RANSAC releases the GIL; -1: one per core)."""
+    ``executor``: where the pairs' shuffles run (an open executor or a name; the same decisions on any)."""
     config = config or ChanceConfig()
-    num_threads = num_threads if num_threads > 0 else os.cpu_count() or 1
+    database = Path(database)
     pairs, verified = read_weak_pairs(database, min_inliers, config.max_inliers)
-    with ThreadPoolExecutor(num_threads) as pool:
-        levels = list(pool.map(lambda pair: chance_level(pair, config, seed), pairs))
-    dropped = [(pair, level) for pair, level in zip(pairs, levels) if pair.inliers < config.margin * level]
+    tested = {pair.key: pair for pair in pairs}
+    # What the levels were computed from: a killed check resumes only on the same pairs, settings and seed.
+    signature = json.dumps({"pairs": [[p.key, p.inliers] for p in pairs], "config": asdict(config), "seed": seed})
+    results = PairResults(database.with_name(f"{database.stem}-chance.h5"), FORMAT, signature, max_items=256)
+    stage = Stage(name="chance check", worker=ChanceWorker, args=(str(database.resolve()), tested, config, seed),
+                  batches=results.missing(list(tested)), output=results.path, write_group=write_pair_group,
+                  unit="pair", items="pairs", verb="tested", joinable=True, per_task=PAIRS_PER_TASK,
+                  local_processes=True)
+    with using(executor) as runner:
+        found = results.compute(stage, runner, progress)
+    results.remove()
+    levels = {key: found[key]["level"] for key in tested}
+    dropped = [(pair, int(levels[pair.key][0])) for pair in pairs if pair.inliers < config.margin * levels[pair.key][0]]
     return [pair for pair, _ in dropped], {
         "verified": verified, "tested": len(pairs), "dropped": len(dropped),
-        "dropped_pairs": [{"pair": [p.name1, p.name2], "inliers": p.inliers, "matches": len(p.points1),
+        "dropped_pairs": [{"pair": [p.name1, p.name2], "inliers": p.inliers, "matches": int(levels[p.key][1]),
                            "chance_inliers": level} for p, level in sorted(dropped, key=lambda d: d[0].inliers)],
         "config": asdict(config)}
 
 
 def check_chance(database: str | Path, min_inliers: int, config: ChanceConfig | None = None, seed: int = 0,
-                 num_threads: int = 1) -> dict:
-    """Drop from ``database``'s verified pairs those no better than chance (``find_chance_pairs``); their raw
-    matches stay. Returns ``find_chance_pairs``'s record."""
+                 executor: str | Executor = "local", progress: bool = False) -> dict:
+    """Drop from ``database``'s verified pairs those no better than chance (``find_chance_pairs``, on ``executor``);
+    their raw matches stay. Returns ``find_chance_pairs``'s record."""
     config = config or ChanceConfig()
-    dropped, record = find_chance_pairs(database, min_inliers, config, seed, num_threads)
+    dropped, record = find_chance_pairs(database, min_inliers, config, seed, executor, progress)
     if dropped:
         delete_verified_pairs(database, [(pair.image1, pair.image2) for pair in dropped])
         logger.info("chance check: %d of %d verified pairs dropped, their inliers under %.2f x what their matches "

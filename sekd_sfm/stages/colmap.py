@@ -14,6 +14,8 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import SekdError
 from ..runtime import keep_sigterm_handler
 
@@ -61,6 +63,38 @@ def read_only_database(path: str | Path) -> Iterator[sqlite3.Connection]:
     could change."""
     with contextlib.closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
         yield db
+
+
+def sqlite_keypoints(db: sqlite3.Connection, image_id: int) -> np.ndarray:
+    """An image's keypoints (``N x 2`` float64, COLMAP pixels) from a ``read_only_database`` connection."""
+    rows, cols, data = db.execute("SELECT rows, cols, data FROM keypoints WHERE image_id = ?", (image_id,)).fetchone()
+    return np.frombuffer(data, np.float32).reshape(rows, cols)[:, :2].astype(np.float64)
+
+
+class KeypointCache:
+    """Images' keypoints (``sqlite_keypoints``) as a worker reads them pair after pair: up to ``size`` images kept
+    (a task's pairs share few images; memory stays flat on big scenes)."""
+
+    def __init__(self, size: int = 256):
+        self.size, self.items = size, {}
+
+    def get(self, db: sqlite3.Connection, image_id: int) -> np.ndarray:
+        if image_id not in self.items:
+            if len(self.items) >= self.size:
+                self.items.clear()
+            self.items[image_id] = sqlite_keypoints(db, image_id)
+        return self.items[image_id]
+
+
+def sqlite_matches(db: sqlite3.Connection, image_id1: int, image_id2: int) -> np.ndarray:
+    """A pair's raw matches (``M x 2`` uint32: indices into image 1's, then image 2's keypoints) from a
+    ``read_only_database`` connection; none (``0 x 2``) for a pair without matches."""
+    pair_id = require_pycolmap().image_pair_to_pair_id(image_id1, image_id2)
+    row = db.execute("SELECT rows, data FROM matches WHERE pair_id = ?", (pair_id,)).fetchone()
+    if row is None or not row[0]:
+        return np.zeros((0, 2), np.uint32)
+    matches = np.frombuffer(row[1], np.uint32).reshape(row[0], 2)
+    return matches[:, ::-1].copy() if image_id1 > image_id2 else matches  # stored from the lower id
 
 
 def delete_verified_pairs(database: str | Path, pairs: Iterable[tuple[int, int]]) -> None:

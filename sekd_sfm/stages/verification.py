@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import sqlite3
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +23,7 @@ import numpy as np
 from ..execution import Executor, Stage, using
 from ..files import matches as mf
 from ..files.pairresults import PairResults, write_pair_group
-from .colmap import open_database, read_only_database, require_pycolmap
+from .colmap import KeypointCache, open_database, read_only_database, require_pycolmap, sqlite_matches
 
 logger = logging.getLogger("sekd")
 
@@ -87,24 +86,7 @@ class VerifyWorker:
     def __init__(self, database: str, cameras: dict, images: dict[str, tuple[int, int]], options):
         self.pycolmap = require_pycolmap()
         self.database, self.cameras, self.images, self.options = database, cameras, images, options
-        self.keypoints: dict[int, np.ndarray] = {}
-
-    def _keypoints(self, db: sqlite3.Connection, image_id: int) -> np.ndarray:
-        """An image's keypoints (``N x 2`` float64, COLMAP pixels), a few hundred images cached."""
-        if image_id not in self.keypoints:
-            if len(self.keypoints) > 256:  # a task's pairs share few images: keep memory flat on big scenes
-                self.keypoints.clear()
-            rows, cols, data = db.execute("SELECT rows, cols, data FROM keypoints WHERE image_id = ?",
-                                          (image_id,)).fetchone()
-            self.keypoints[image_id] = np.frombuffer(data, np.float32).reshape(rows, cols)[:, :2].astype(np.float64)
-        return self.keypoints[image_id]
-
-    def _matches(self, db: sqlite3.Connection, image_id1: int, image_id2: int) -> np.ndarray:
-        """The raw matches (``M x 2`` uint32, indices into image 1's then image 2's keypoints)."""
-        pair_id = self.pycolmap.image_pair_to_pair_id(image_id1, image_id2)
-        rows, data = db.execute("SELECT rows, data FROM matches WHERE pair_id = ?", (pair_id,)).fetchone()
-        matches = np.frombuffer(data, np.uint32).reshape(rows, 2)
-        return matches[:, ::-1].copy() if image_id1 > image_id2 else matches  # stored from the lower id
+        self.keypoints = KeypointCache()
 
     def __call__(self, keys: list[str]):
         with read_only_database(self.database) as db:
@@ -112,8 +94,8 @@ class VerifyWorker:
                 name1, name2 = json.loads(key)
                 (id1, camera1), (id2, camera2) = self.images[name1], self.images[name2]
                 geometry = self.pycolmap.estimate_two_view_geometry(
-                    self.cameras[camera1], self._keypoints(db, id1), self.cameras[camera2], self._keypoints(db, id2),
-                    self._matches(db, id1, id2), self.options)
+                    self.cameras[camera1], self.keypoints.get(db, id1), self.cameras[camera2], self.keypoints.get(db, id2),
+                    sqlite_matches(db, id1, id2), self.options)
                 yield key, geometry_arrays(geometry), ""
 
 
