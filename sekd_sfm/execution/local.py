@@ -33,16 +33,18 @@ def run_local(stage: Stage, parts: partstore.PartStore, on_error: OnError, *, pr
     """
     used = processes_for(stage, processes)
     bar = tqdm(total=len(stage.keys), unit=stage.unit, desc=stage.name, disable=not progress, dynamic_ncols=True)
+    finished = 0
     try:
         for key, arrays, error in (_in_processes(stage, used) if used > 1 else _here(stage)):
             if arrays is None:
                 on_error(key, error)
             else:
                 parts.save(key, arrays)
+                finished += 1
             bar.update(1)
     except KeyboardInterrupt:
         bar.close()
-        saved = save_interrupted(stage, parts)
+        saved = save_interrupted(stage, parts, finished)
         raise Interrupted(f"interrupted: {saved} more {stage.items} saved in {stage.output}; "
                           "run the same command again to resume") from None
     except BaseException:
@@ -53,12 +55,12 @@ def run_local(stage: Stage, parts: partstore.PartStore, on_error: OnError, *, pr
     return used
 
 
-def save_interrupted(stage: Stage, parts: partstore.PartStore) -> int:
-    """What an interrupted run keeps: its finished items merged into the output (the part store's for a stage that
-    keeps its parts); returns the items merged."""
+def save_interrupted(stage: Stage, parts: partstore.PartStore, finished: int) -> int:
+    """What an interrupted run keeps: its finished items merged into the output, or left in the part store for a
+    stage that keeps its parts there (``finished``: how many this run finished); returns the items saved."""
     if stage.keep_parts:
         partstore.keep_parts(parts)
-        return 0
+        return finished
     return partstore.finish_run(stage.output, parts, write_group=stage.write_group, what=stage.items)
 
 

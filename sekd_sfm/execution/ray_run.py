@@ -448,7 +448,7 @@ def _drain(results: Iterable[dict], stage: Stage, total: int, parts: partstore.P
         bar.close()
         if helper is not None:
             helper.finish(reraise=False)  # its saved items go into this merge
-        saved = merge.finish() if merge is not None else save_interrupted(stage, parts)
+        saved = merge.finish() if merge is not None else save_interrupted(stage, parts, seen.done)
         raise Interrupted(f"interrupted: {saved} more {stage.items} saved in {stage.output}; "
                           "run the same command again to resume") from None
     finally:

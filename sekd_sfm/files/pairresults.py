@@ -6,18 +6,19 @@ One HDF5 file beside the stage's real output, one group per item under a digest 
 names may hold '/'; the key is kept as the attribute ``pair``, whatever the item), and the file's ``format`` and
 ``signature`` (what the results were computed from). An executor fills it through the crash-safe
 part store; a killed run's pairs are reused by the next run with the same signature, and the file
-goes once the stage's output holds what it was for (``compute`` leaves the items it computed in the part store and
-reads them from there: they are never copied into the file)::
+goes once the stage's output holds what it was for. The items computed stay in the part store and are read from
+there (``items``): they are never copied into the file::
 
     results = PairResults(out / "x-pairs.h5", "sekd-x-pairs", signature)
     stage = Stage(..., batches=results.missing(keys), output=results.path, write_group=write_pair_group)
-    arrays = results.compute(stage, executor, progress)   # {key: {name: array}}
+    arrays = results.compute(stage, executor, progress)   # {key: {name: array}}; or run(), then items()
     ... write the output ...
     results.remove()
 """
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -68,32 +69,40 @@ class PairResults:
         return [[key] for key in keys if key not in done]
 
     def run(self, stage, executor, progress: bool = True) -> Path:
-        """Run ``stage`` (its output this file) on ``executor``; returns this file, every item in it. An item
-        fails only with its whole run (its worker raises): the finished ones stay for the next run, and a file
-        with none is removed."""
+        """Run ``stage`` (its output this file) on ``executor``; returns this file. An item fails only with its whole
+        run (its worker raises): the finished ones stay for the next run, and a file with none is removed.
+
+        The items stay in the part store (``Stage.keep_parts``), where ``items`` reads them: the caller removes
+        them once its output is written, so copying them into the HDF5 file (one group and its datasets per item,
+        then read back) would be the driver's serial work thrown away."""
         def on_error(key: str, error: str) -> None:
             raise SekdError(error)
 
         try:
-            executor.run(stage, self.parts, on_error, progress=progress)
+            executor.run(replace(stage, keep_parts=True), self.parts, on_error, progress=progress)
         except BaseException:
             if not self.stored():
                 self.remove()
             raise
         return self.path
 
-    def compute(self, stage, executor, progress: bool = True) -> dict[str, dict[str, np.ndarray]]:
-        """``run``, then every item's arrays, by key (for results that fit in memory).
+    def items(self) -> Iterator[tuple[str, dict[str, np.ndarray]]]:
+        """Every finished item's key and arrays, one chunk in memory at a time: the part store's, then those an earlier
+        version merged into the file (a key in both: the part store's, the newer)."""
+        seen = set()
+        for key, arrays in self.parts.items():
+            seen.add(key)
+            yield key, arrays
+        with h5py.File(self.path, "r") as f:
+            for group in f.values():
+                key = str(group.attrs["pair"])
+                if key not in seen:
+                    yield key, {name: data[()] for name, data in group.items()}
 
-        The items computed now stay in the part store (``Stage.keep_parts``) and are read from there: the caller
-        removes them once its output is written, so copying them into the HDF5 file (one group and its datasets
-        per item, then read back) would be the driver's serial work thrown away.
-        """
-        self.run(replace(stage, keep_parts=True), executor, progress)
-        with h5py.File(self.path, "r") as f:  # items merged by an earlier run
-            found = {str(group.attrs["pair"]): {n: d[()] for n, d in group.items()} for group in f.values()}
-        found.update(self.parts.items())  # the part store's are newer
-        return found
+    def compute(self, stage, executor, progress: bool = True) -> dict[str, dict[str, np.ndarray]]:
+        """``run``, then every item's arrays, by key (for results that fit in memory)."""
+        self.run(stage, executor, progress)
+        return dict(self.items())
 
     def remove(self) -> None:
         """The file and its parts, once the stage's output holds what they were for."""

@@ -38,6 +38,7 @@ import logging
 import shutil
 import tempfile
 import time
+from collections.abc import Iterable
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -394,7 +395,7 @@ def _describe_all(features: Path, output: Path, config: RetrievalConfig, identit
                           batches=results.missing(todo), output=results.path, write_group=write_pair_group,
                           unit="img", items="images", verb="described", joinable=True, per_task=IMAGES_PER_TASK)
             results.run(stage, runner, progress)
-        _merge(output, identity, vocab, stored, results.path, set(names))
+        _merge(output, identity, vocab, stored, results.items(), set(names))
     shutil.rmtree(parts, ignore_errors=True)  # everything in it is now in the output
     logger.info("%s: %d global descriptors (%d new)", output, len(names), len(todo))
 
@@ -412,9 +413,10 @@ def _learned_vocabulary(features: Path, output: Path, parts: Path, config: Retri
     return vocab
 
 
-def _merge(output: Path, identity: str, vocab: Vocabulary, stored: list[str], described: Path, keep: set[str]) -> None:
-    """Write the global file: rows of the old file still wanted, then the images ``described`` (the stage's results
-    file); block by block, bounded memory."""
+def _merge(output: Path, identity: str, vocab: Vocabulary, stored: list[str],
+           described: Iterable[tuple[str, dict[str, np.ndarray]]], keep: set[str]) -> None:
+    """Write the global file: rows of the old file still wanted, then the images ``described`` (the stage's results,
+    ``PairResults.items``); block by block, bounded memory."""
     old_rows = [i for i, n in enumerate(stored) if n in keep]
 
     def write(f: h5py.File) -> None:
@@ -435,15 +437,13 @@ def _merge(output: Path, identity: str, vocab: Vocabulary, stored: list[str], de
             rows[rows.shape[0] - len(block):] = np.stack(block)
             block.clear()
 
-        with h5py.File(described, "r") as new:
-            for group in new.values():
-                name = str(group.attrs["pair"])
-                if name in keep and name not in seen:
-                    block.append(group["vlad"][()])
-                    all_names.append(name)
-                    seen.add(name)
-                    if len(block) == 256:
-                        flush()
+        for name, arrays in described:
+            if name in keep and name not in seen:
+                block.append(arrays["vlad"])
+                all_names.append(name)
+                seen.add(name)
+                if len(block) == 256:
+                    flush()
         if block:
             flush()
         f.create_dataset("names", data=np.array(all_names, dtype=h5py.string_dtype()))
