@@ -230,7 +230,9 @@ def test_final_filter_drops_wrong_observations_and_restores_the_poses(synthetic)
     record = final_filter(reconstruction, refine, 1, pycolmap)
     # The moved ones, and some of their points' other observations, which the moved ones had bent (or left alone).
     assert 0.5 < record["threshold_px"] < 0.8 and moved <= record["removed_observations"] < record["observations"] / 5
-    assert record["mean_error_after_px"] < bent.mean() and reprojection_errors(reconstruction).max() <= record["threshold_px"] + 1e-6
+    after = reprojection_errors(reconstruction)
+    assert record["mean_error_after_px"] < bent.mean() and after.max() <= record["threshold_px"] + 1e-6
+    assert record["observations_after"] == after.size and abs(record["mean_error_after_px"] - after.mean()) < 1e-12
     assert bent_by > 0.05 and largest_change() < bent_by / 2, (bent_by, largest_change())  # most of the way back
 
 
@@ -250,6 +252,7 @@ def test_the_final_filter_adjusts_after_a_later_round_only_when_it_removed_enoug
         model = SimpleNamespace(num_reg_images=lambda: 2, compute_num_observations=lambda: state["observations"])
         fake = SimpleNamespace(ObservationManager=lambda reconstruction: SimpleNamespace(filter_all_points3D=remove))
         monkeypatch.setattr(mapper_worker, "reprojection_errors", lambda reconstruction: np.full(10, 0.1))
+        monkeypatch.setattr(mapper_worker, "mean_observation_error", lambda r: (0.1, state["observations"]))
         monkeypatch.setattr(mapper_worker, "adjustment_options", lambda *args: None)
         monkeypatch.setattr(mapper_worker, "_adjust", lambda *args: state.update(adjusted=state["adjusted"] + 1))
         record = mapper_worker.final_filter(model, {}, 1, fake)
