@@ -168,8 +168,10 @@ def find_chance_pairs(database: str | Path, min_inliers: int, config: ChanceConf
     database = Path(database)
     pairs, verified = read_weak_pairs(database, min_inliers, config.max_inliers)
     tested = {pair.key: pair for pair in pairs}
-    # What the levels were computed from: a killed check resumes only on the same pairs, settings and seed.
-    signature = json.dumps({"pairs": [[p.key, p.inliers] for p in pairs], "config": asdict(config), "seed": seed})
+    # What the levels were computed from (a digest: thousands of pairs would not fit in an HDF5 attribute): a killed
+    # check resumes only on the same pairs, settings and seed.
+    signature = hashlib.sha1(json.dumps({"pairs": [[p.key, p.inliers] for p in pairs], "config": asdict(config),
+                                         "seed": seed}).encode()).hexdigest()
     results = PairResults(database.with_name(f"{database.stem}-chance.h5"), FORMAT, signature, max_items=256)
     stage = Stage(name="chance check", worker=ChanceWorker, args=(str(database.resolve()), tested, config, seed),
                   batches=results.missing(list(tested)), output=results.path, write_group=write_pair_group,
