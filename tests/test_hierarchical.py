@@ -240,30 +240,6 @@ def test_a_seam_too_wide_for_two_passes_is_closed_by_the_third_at_twice_the_tole
     assert _seam_error_deg(thrice, truth) < 0.05
 
 
-def test_the_last_pass_adjusts_to_the_looser_tolerance_only_where_the_final_filter_follows(arc_scene, tmp_path,
-                                                                                          monkeypatch):
-    from sekd_sfm.stages import mapper_worker
-
-    images, database, truth = arc_scene
-    piece, _ = _drifted_piece(arc_scene, 2.0)
-    options = mapper_options(OPTIONS, mapper_type="hierarchical").incremental_options
-    tolerances = []
-    adjust = mapper_worker.bundle_adjust_merged
-    monkeypatch.setattr(mapper_worker, "bundle_adjust_merged",
-                        lambda *args: tolerances.append(args[4]) or adjust(*args))
-    filtered = merged_model(piece, str(database), str(images), options, tmp_path / "a", pycolmap, passes=2,
-                            filtered=True)
-    assert tolerances == [mapper_worker.ADJUSTMENT_FUNCTION_TOLERANCE, mapper_worker.MERGE_FUNCTION_TOLERANCE]
-    tolerances.clear()
-    alone = merged_model(piece, str(database), str(images), options, tmp_path / "b", pycolmap, passes=2)
-    assert tolerances == [mapper_worker.ADJUSTMENT_FUNCTION_TOLERANCE] * 2  # nothing adjusts after it
-    refine = {"focal_length": True, "principal_point": False, "extra_params": True}
-    mapper_worker.final_filter(filtered, refine, 1, pycolmap)
-    mapper_worker.final_filter(alone, refine, 1, pycolmap)
-    assert _seam_error_deg(filtered, truth) < 0.05 and abs(_seam_error_deg(filtered, truth)
-                                                            - _seam_error_deg(alone, truth)) < 0.01
-
-
 def test_a_merge_without_passes_keeps_the_poses_as_merged_and_no_point(arc_scene, tmp_path):
     """``passes=0`` (the capture order's chain, closed and adjusted afterwards, which triangulates from scratch):
     every photo registered at the pose the merge gave it, seam included, and no point triangulated for nothing."""

@@ -26,6 +26,7 @@ from typing import Any, TypeVar
 
 from ..execution import Executor, RayOptions, open_executor
 from ..files.locking import exclusive_lock
+from ..runtime import release_free_memory
 
 State = TypeVar("State")
 
@@ -129,13 +130,15 @@ class Step:
 
 
 def run_steps(run: Run, steps: Sequence[Step], state: State) -> State:
-    """Run ``steps`` in order over ``state``; returns the last step's state."""
+    """Run ``steps`` in order over ``state``; returns the last step's state. After each timed step (a stage) the
+    heap's free pages go back to the OS (``runtime.release_free_memory``)."""
     for step in steps:
         if step.when is not None and not step.when(state):
             continue
         if step.timed:
             with run.timed(step.name):
                 state = step.run(run, state)
+            release_free_memory()
         else:
             state = step.run(run, state)
     return state

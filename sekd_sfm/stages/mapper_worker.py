@@ -106,21 +106,11 @@ def refined_intrinsics(options) -> tuple[dict[str, bool], int]:
 MERGE_LOSS_SCALE_PX = 1.0
 
 
-#: Ceres' function tolerance of a merged model's last adjustment where the final filter follows
-#: (``bundle_adjust_merged``): the filter adjusts the model again at ADJUSTMENT_FUNCTION_TOLERANCE once the
-#: outliers are out, so this one only has to close the seams well enough for the filter to tell them. On the
-#: 100-photo walk's chain: 35 -> 18 iterations, 4.5 -> 2.5 s, pose AUC@5 after the final filter 0.9954 and 0.9955
-#: (docs/experiments.md, section 49).
-MERGE_FUNCTION_TOLERANCE = 1e-4
-
-
-def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, filters=None,
-                         function_tolerance: float = ADJUSTMENT_FUNCTION_TOLERANCE) -> None:
+def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, filters=None) -> None:
     """One global bundle adjustment of a model the hierarchical mapper merged from clusters, robust to the
     wrong observations its seams' tracks may hold; then COLMAP's own filter as the mapper's options set it
     (``filters``: their IncrementalMapperOptions, ``filter_max_reproj_error`` and ``filter_min_tri_angle``;
-    None: COLMAP's defaults, 4 px and 1.5 deg). ``function_tolerance``: Ceres' (MERGE_FUNCTION_TOLERANCE where
-    the final filter adjusts again).
+    None: COLMAP's defaults, 4 px and 1.5 deg).
 
     COLMAP merges its clusters by similarity transforms and stops there, so each cluster
     keeps its own drift and the seams stay where the merge put them: on the generated
@@ -132,7 +122,6 @@ def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, filters=Non
     if reconstruction.num_reg_images() < 2:
         return
     options = adjustment_options(reconstruction, num_threads, pycolmap)
-    options.ceres.solver_options.function_tolerance = function_tolerance
     options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     options.ceres.loss_function_scale = MERGE_LOSS_SCALE_PX
     pycolmap.bundle_adjustment(reconstruction, options)
@@ -259,15 +248,14 @@ MERGE_PASSES = len(MERGE_PASS_TOLERANCES_PX)
 
 
 def merged_model(piece, database: str, image_dir: str, options, scratch: Path, pycolmap, passes: int = MERGE_PASSES,
-                 seconds: dict | None = None, filtered: bool = False):
+                 seconds: dict | None = None):
     """The Reconstruction of one merged ``piece`` (``cluster_merge.Piece``): its points triangulated from
     ``database`` with the poses held (``cluster_merge.assemble``), adjusted (``bundle_adjust_merged``), then
     ``passes`` - 1 (at most MERGE_PASSES - 1) times triangulated again from the adjusted poses at that pass's
     tolerance (MERGE_PASS_TOLERANCES_PX) and adjusted again; ``passes`` = 0: the merged poses only, no point (a
     chain the capture order closes afterwards: its check reads the poses, and the closing clears every point and
     triangulates again; 1.2-1.7 s of a 100-photo walk's serial time). ``options``: the
-    IncrementalPipelineOptions; ``seconds`` (``triangulate_s``, ``bundle_adjustment_s``) adds up the time;
-    ``filtered``: the final filter follows (the last pass's adjustment at MERGE_FUNCTION_TOLERANCE)."""
+    IncrementalPipelineOptions; ``seconds`` (``triangulate_s``, ``bundle_adjustment_s``) adds up the time."""
     seconds = seconds if seconds is not None else {"triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
     clock = time.perf_counter()
     model = assemble(piece, database, image_dir, options, scratch, pycolmap, triangulate=passes > 0)
@@ -278,9 +266,7 @@ def merged_model(piece, database: str, image_dir: str, options, scratch: Path, p
             model = triangulate_held(model, database, image_dir, options, scratch, pycolmap,
                                      MERGE_PASS_TOLERANCES_PX[k])
         adjusting = time.perf_counter()
-        last = filtered and k == passes - 1  # earlier passes' poses place the next pass's tracks: fully adjusted
-        bundle_adjust_merged(model, options.num_threads, pycolmap, options.mapper,
-                             MERGE_FUNCTION_TOLERANCE if last else ADJUSTMENT_FUNCTION_TOLERANCE)
+        bundle_adjust_merged(model, options.num_threads, pycolmap, options.mapper)
         seconds["triangulate_s"] += adjusting - clock
         seconds["bundle_adjustment_s"] += time.perf_counter() - adjusting
     return model
@@ -300,8 +286,7 @@ def merge_clusters(request: dict, options, pycolmap) -> dict:
     seconds = {"align_s": time.perf_counter() - start, "triangulate_s": 0.0, "bundle_adjustment_s": 0.0}
     passes = int(request.get("merge_passes", MERGE_PASSES))
     found = {k: merged_model(piece, request["database"], request["image_dir"], inner,
-                             Path(request["scratch"]) / f"merge-{k}", pycolmap, passes, seconds,
-                             filtered=bool(request.get("final_filter")))
+                             Path(request["scratch"]) / f"merge-{k}", pycolmap, passes, seconds)
              for k, piece in enumerate(merged)}
     request["merge"] = {"pieces": len(pieces), "models": [len(piece.poses) for piece in merged], "passes": passes,
                         **{key: round(value, 3) for key, value in seconds.items()}}
@@ -328,8 +313,7 @@ def run(request: dict) -> list:
         found = pycolmap.hierarchical_mapping(*args)
         for reconstruction in found.values():
             bundle_adjust_merged(reconstruction, options.incremental_options.num_threads, pycolmap,
-                                 options.incremental_options.mapper, MERGE_FUNCTION_TOLERANCE
-                                 if request.get("final_filter") else ADJUSTMENT_FUNCTION_TOLERANCE)
+                                 options.incremental_options.mapper)
     else:
         raise ValueError(f"unknown mapper type {kind!r}")
     models = sorted(found.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
