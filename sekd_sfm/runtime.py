@@ -56,7 +56,7 @@ def _set_heap_thresholds(mmap_bytes: int, trim_bytes: int, trim_now: bool = Fals
         libc = ctypes.CDLL("libc.so.6")
         ok = libc.mallopt(_M_MMAP_THRESHOLD, mmap_bytes) == 1 and libc.mallopt(_M_TRIM_THRESHOLD, trim_bytes) == 1
         if ok and trim_now:
-            libc.malloc_trim(0)
+            release_free_memory()
         return ok
     except (OSError, AttributeError):
         return False

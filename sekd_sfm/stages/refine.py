@@ -286,8 +286,9 @@ class TrackSystem:
         self.a = np.where(a >= 0, self.rank[np.maximum(a, 0)], -1)
         self.b = np.where(b >= 0, self.rank[np.maximum(b, 0)], -1)
         # Matches in column order of their track (a match's points share one), so a run of tracks has a run of them.
-        self.matches = np.argsort(np.where(self.b >= 0, self.b, self.a), kind="stable")
-        self.first = np.searchsorted(np.where(self.b >= 0, self.b, self.a)[self.matches], np.arange(columns + 1))
+        key = np.where(self.b >= 0, self.b, self.a)
+        self.matches = np.argsort(key, kind="stable")
+        self.first = np.searchsorted(key[self.matches], np.arange(columns + 1))
 
     def solve(self, A: np.ndarray, t: np.ndarray, w2: np.ndarray, prior: float) -> np.ndarray:
         """The shifts (``columns x 2``) minimising ``sum w2 |d_b - A d_a - t|^2 + prior^2 |d|^2``."""
