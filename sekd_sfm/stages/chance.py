@@ -64,19 +64,6 @@ class ChanceConfig:
     max_num_trials: int = 2000
 
 
-@dataclass
-class PairMatches:
-    """One verified pair: image ids and names, its inlier count, its putative matches' keypoints (N x 2, px)."""
-
-    image1: int
-    image2: int
-    name1: str
-    name2: str
-    inliers: int
-    points1: np.ndarray
-    points2: np.ndarray
-
-
 def pair_seed(name1: str, name2: str, seed: int) -> int:
     """A 31-bit seed from the pair's names and ``seed``: independent of the order pairs are tested in."""
     digest = hashlib.sha1(f"{seed}\0{name1}\0{name2}".encode()).digest()
@@ -131,11 +118,12 @@ def read_weak_pairs(database: str | Path, min_inliers: int, max_inliers: int) ->
     return weak, len(verified)
 
 
-def chance_level(pair: PairMatches, config: ChanceConfig, seed: int) -> int:
-    """The chance level of ``pair``: the most inliers its shuffled matches reach (``chance_inliers``)."""
+def chance_level(pair: WeakPair, points1: np.ndarray, points2: np.ndarray, config: ChanceConfig, seed: int) -> int:
+    """The chance level of ``pair``: the most inliers its putative matches (keypoints ``points1``, ``points2``,
+    N x 2 each, px) reach shuffled (``chance_inliers``)."""
     needed = int(np.ceil(pair.inliers / config.margin))  # a shuffle this good already condemns the pair
-    return max(chance_inliers(pair.points1, pair.points2, config, pair_seed(pair.name1, pair.name2, seed),
-                              stop_at=needed), default=0)
+    return max(chance_inliers(points1, points2, config, pair_seed(pair.name1, pair.name2, seed), stop_at=needed),
+               default=0)
 
 
 class ChanceWorker:
@@ -154,8 +142,7 @@ class ChanceWorker:
                 matches = sqlite_matches(db, pair.image1, pair.image2).astype(np.int64)
                 points1 = self.keypoints.get(db, pair.image1)[matches[:, 0]]
                 points2 = self.keypoints.get(db, pair.image2)[matches[:, 1]]
-                level = chance_level(PairMatches(pair.image1, pair.image2, pair.name1, pair.name2, pair.inliers,
-                                                 points1, points2), self.config, self.seed)
+                level = chance_level(pair, points1, points2, self.config, self.seed)
                 yield key, {"level": np.array([level, len(matches)], np.int64)}, ""
 
 
