@@ -87,6 +87,8 @@ for name, wall in walls.items():
           f"  AUC@5 {accuracy['auc5']:.3f}")
     for row in stats["stages"]:
         print(f"    {row['stage']:<16s} {row['seconds']:8.1f}  {row['ran_on']}")
+        for part, seconds in row.get("parts", {}).items():  # e.g. mapping's chain, closing, principal point test
+            print(f"      {part:<22s} {seconds:8.1f}")
 for round in sorted({name[-1] for name in walls}):
     local, ray, cores = runs.get(f"local{round}"), runs.get(f"ray{round}"), runs.get(f"cores{round}")
     if local and ray:

@@ -53,6 +53,33 @@ def test_the_stage_table_says_where_each_step_computed(tmp_path):
     assert stage_lines({"timings_s": {"extract": 1.0, "total": 1.0}}) == ["  time               extract 1.0s, total 1.0s"]
 
 
+def test_a_steps_timed_parts_add_up_under_it_in_the_table_and_the_summary(tmp_path):
+    """``Run.part`` times parts of the running step (a part run twice adds up); outside a timed step it records
+    nothing; the table and the summary list the parts under their step."""
+    from sekd_sfm.pipelines.report import stage_lines
+
+    def mapping(run, state):
+        for name in ("clusters", "closing", "clusters"):
+            with run.part(name):
+                pass
+        return state
+
+    def untimed(run, state):
+        with run.part("ignored"):
+            return state
+
+    with Run(tmp_path) as run:
+        run_steps(run, (Step("options", untimed, timed=False), Step("mapping", mapping),
+                        Step("check", lambda run, state: state)), None)
+    table = run.stage_table()
+    assert list(table[0]["parts"]) == ["clusters", "closing"] and "parts" not in table[1]
+    assert sum(table[0]["parts"].values()) <= table[0]["seconds"] + 1e-3
+    assert "ignored" not in json.dumps(table)
+    lines = stage_lines({"stages": table, "timings_s": run.timings()})
+    assert [line.split()[0] for line in lines] == ["stages", "mapping", "clusters", "closing", "check", "total"]
+    assert lines[2].startswith("      clusters") and len(lines[2].split()) == 2  # indented, no place of its own
+
+
 def test_one_executor_for_the_whole_run_closed_at_its_end(tmp_path, monkeypatch):
     opened: list[str] = []
 

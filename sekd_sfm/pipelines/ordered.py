@@ -87,37 +87,46 @@ def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: d
         # adjusts the whole again (``_close``), which undoes a final filter and makes adjusting the chain first
         # moot (generated walks in clusters of 60: pose AUC@5 the same to 0.0001, mapping 77 -> 59 s at 100 photos,
         # 267 -> 164 s at 250; docs/experiments.md, section 44).
-        chain = run_mapper(chain_db, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
-                           executor=run.executor, details=details, merge_passes=0)
+        with run.part("chain"):
+            chain = run_mapper(chain_db, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
+                               executor=run.executor, details=details, merge_passes=0)
         if registered(chain) < (1 - config.max_left_out) * photos:
             s.stats["sequence"] = sequence_record("ordered", linked, config, remapped=False,
                                                   chain_registered=registered(chain), photos=photos)
             return None
-        dropped = _without_unfit_pairs(s, chain, far, closed_db)
-        closed, records = _close(run, s, closed_db, chain)
-        scores, kept = {"closed": _verdict(s, closed, closed_db)}, "closed"
+        with run.part("far pairs"):
+            dropped = _without_unfit_pairs(s, chain, far, closed_db)
+        closing: dict = {}
+        with run.part("closing"):
+            closed, records = _close(run, s, closed_db, chain, closing)
+        with run.part("fold check"):
+            scores, kept = {"closed": _verdict(s, closed, closed_db)}, "closed"
         if scores["closed"][0] or registered(closed) < registered(chain):
             # The far pairs kept fold it (or cost photos): the chain alone, adjusted and filtered over its own
             # pairs, when that is better.
-            alone, alone_records = _close(run, s, chain_db, chain)
-            scores["chain"] = _verdict(s, alone, chain_db)
+            with run.part("closing"):
+                alone, alone_records = _close(run, s, chain_db, chain)
+            with run.part("fold check"):
+                scores["chain"] = _verdict(s, alone, chain_db)
             if rank(scores["chain"]) > rank(scores["closed"]):
                 kept, closed, records = "chain", alone, alone_records
         os.replace(closed_db if kept == "closed" else chain_db, s.database)  # the pairs the kept model was made from
         filtered.extend(records)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    _record_remap(s, "ordered", linked, far, dropped, kept, scores)
+    _record_remap(s, "ordered", linked, far, dropped, kept, scores, closing=closing.get("merge"))
     return closed
 
 
-def _close(run: Run, s: Reconstruction, database: Path, chain: list) -> tuple[list, list]:
+def _close(run: Run, s: Reconstruction, database: Path, chain: list, details: dict | None = None
+           ) -> tuple[list, list]:
     """The chain's largest model with its poses held, its points triangulated again from ``database``'s pairs, the
-    whole adjusted and filtered (``run_mapper(poses_from=...)``): the models and the final filter's records."""
+    whole adjusted and filtered (``run_mapper(poses_from=...)``): the models and the final filter's records.
+    ``details`` gets the record of the closing (``merge``: its passes and the seconds of each step)."""
     records: list = []
     models = run_mapper(database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
                         final_filter=s.config.final_filter, records=records, poses_from=[model_arrays(chain[:1])],
-                        merge_passes=CLOSE_PASSES)
+                        merge_passes=CLOSE_PASSES, details=details)
     return models, records
 
 
@@ -213,13 +222,13 @@ def _verdict(s: Reconstruction, models: list, database: Path) -> tuple[bool, int
 
 
 def _record_remap(s: Reconstruction, reason: str, linked: float, far: list, dropped: list, kept: str,
-                  scores: dict) -> None:
-    """``stats.json`` ``sequence`` of a run that mapped in capture order, and its log line."""
+                  scores: dict, **figures) -> None:
+    """``stats.json`` ``sequence`` of a run that mapped in capture order (and ``figures``), and its log line."""
     config = s.config.sequence
     s.stats["sequence"] = sequence_record(
         reason, linked, config, remapped=True, far_pairs=len(far), dropped=len(dropped),
         dropped_pairs=listed_pairs(dropped, config.listed), kept=kept,
-        models={k: {"suspect": v[0], "registered": v[1]} for k, v in scores.items()})
+        models={k: {"suspect": v[0], "registered": v[1]} for k, v in scores.items()}, **figures)
     logger.info("capture order: %s", sequence_line(s.stats["sequence"]))
 
 

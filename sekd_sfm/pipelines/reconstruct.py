@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Sequence
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -424,10 +425,13 @@ def mapping(run: Run, s: Reconstruction) -> Reconstruction:
     once."""
     filtered: list = []
     hierarchical: dict = {}
-    ordered = map_in_capture_order(run, s, filtered, hierarchical) if order_first(s) else None
-    s.models = ordered if ordered is not None else run_mapper(
-        s.database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
-        final_filter=s.config.final_filter, records=filtered, executor=run.executor, details=hierarchical)
+    models = map_in_capture_order(run, s, filtered, hierarchical) if order_first(s) else None
+    if models is None:
+        with run.part("all pairs"):
+            models = run_mapper(s.database, s.image_dir, s.options, run.progress, log_prefix=log_prefix(s.log),
+                                final_filter=s.config.final_filter, records=filtered, executor=run.executor,
+                                details=hierarchical)
+    s.models = models
     s.stats["hierarchical"] = hierarchical or None
     if not s.models and (s.stats.get("rig") or {}).get("estimated"):
         raise ReconstructionError(
@@ -436,7 +440,8 @@ def mapping(run: Run, s: Reconstruction) -> Reconstruction:
             "no initial pair: the free model is likely wrong (too few or too similar photos); measure the poses and "
             "give them in the rig file (cam_from_rig_rotation, cam_from_rig_translation)")
     s.stats["final_filter"] = filtered[0] if filtered else None
-    s.models = s.principal_point.settle(s.models, run.out, s.options, run.progress, log_prefix(s.log))
+    with run.part("principal point test") if s.principal_point.test else nullcontext():
+        s.models = s.principal_point.settle(s.models, run.out, s.options, run.progress, log_prefix(s.log))
     record_principal_point(s)
     return s
 

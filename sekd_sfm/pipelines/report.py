@@ -264,14 +264,17 @@ def _capture_lines(stats: dict) -> list[str]:
 
 
 def stage_lines(stats: dict) -> list[str]:
-    """The summary's table of stages: seconds and where each computed (``Run.stage_table``), then the total; one
-    ``time`` line for a record that has only the seconds (older runs)."""
+    """The summary's table of stages: seconds and where each computed (``Run.stage_table``), a stage's timed parts
+    indented under it, then the total; one ``time`` line for a record that has only the seconds (older runs)."""
     stages, timings = stats.get("stages"), stats.get("timings_s", {})
     if not stages:
         return ["  time               " + ", ".join(f"{k} {v:.1f}s" for k, v in timings.items())] if timings else []
-    width = max(15, *(len(stage["stage"]) for stage in stages))
+    width = max(15, *(len(stage["stage"]) for stage in stages),
+                *(len(part) + 2 for stage in stages for part in stage.get("parts", {})))
     lines = [f"  {'stages':<{width + 2}}  {'seconds':>8}  ran on"]
-    lines += [f"    {stage['stage']:<{width}}  {stage['seconds']:8.1f}  {stage['ran_on']}" for stage in stages]
+    for stage in stages:
+        lines.append(f"    {stage['stage']:<{width}}  {stage['seconds']:8.1f}  {stage['ran_on']}")
+        lines += [f"      {part:<{width - 2}}  {seconds:8.1f}" for part, seconds in stage.get("parts", {}).items()]
     lines.append(f"    {'total':<{width}}  {sum(stage['seconds'] for stage in stages):8.1f}")
     return lines
 

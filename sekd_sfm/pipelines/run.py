@@ -55,6 +55,8 @@ class Run:
         self.options = options or RunOptions()
         self.seconds: dict[str, float] = {}  # wall time of each timed step, in order
         self.places: dict[str, str] = {}    # where each timed step computed (``stage_table``)
+        self.parts: dict[str, dict[str, float]] = {}  # step -> the seconds of its timed parts (``part``)
+        self._step: str | None = None       # the timed step running now
         self._lock = lock
         self._stack = ExitStack()
         self._executor: Executor | None = None
@@ -100,12 +102,25 @@ class Run:
         """Record the block's wall time as step ``name`` (s, 3 decimals), and where it computed, also when it fails:
         the places of the executor's stages run inside it (``Executor.places``), else ``driver`` (this process,
         with the threads of the libraries it calls)."""
-        start, stages = time.perf_counter(), len(self.executor.places)
+        start, stages, self._step = time.perf_counter(), len(self.executor.places), name
         try:
             yield
         finally:
+            self._step = None
             self.seconds[name] = round(time.perf_counter() - start, 3)
             self.places[name] = ", ".join(dict.fromkeys(self.executor.places[stages:])) or "driver"
+
+    @contextmanager
+    def part(self, name: str) -> Iterator[None]:
+        """Record the block's wall time as part ``name`` of the timed step running now (s, 3 decimals; a part
+        run twice adds up), so that a step's table row says where its time went; outside a timed step, nothing."""
+        step, start = self._step, time.perf_counter()
+        try:
+            yield
+        finally:
+            if step is not None:
+                parts = self.parts.setdefault(step, {})
+                parts[name] = round(parts.get(name, 0.0) + time.perf_counter() - start, 3)
 
     def timings(self) -> dict[str, float]:
         """Each timed step's seconds and their ``total``, as records keep them."""
@@ -113,8 +128,10 @@ class Run:
 
     def stage_table(self) -> list[dict]:
         """Each timed step, in order: ``{"stage", "seconds", "ran_on"}`` (``local``, ``local: 2 processes``,
-        ``Ray: 4 workers``, ``driver``), as records keep them."""
-        return [{"stage": name, "seconds": seconds, "ran_on": self.places.get(name, "driver")}
+        ``Ray: 4 workers``, ``driver``), and ``parts`` (part -> seconds, in order) where it timed parts, as records
+        keep them."""
+        return [{"stage": name, "seconds": seconds, "ran_on": self.places.get(name, "driver"),
+                 **({"parts": dict(self.parts[name])} if name in self.parts else {})}
                 for name, seconds in self.seconds.items()]
 
 
