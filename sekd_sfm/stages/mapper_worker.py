@@ -105,13 +105,14 @@ def refined_intrinsics(options) -> tuple[dict[str, bool], int]:
 #: less than under a squared loss. The refined keypoints' errors are a tenth of it.
 MERGE_LOSS_SCALE_PX = 1.0
 #: The merged model's adjustment (``bundle_adjust_merged``) with Ceres' inner iterations: after each step every 3D
-#: point is re-solved on its own with the cameras held, which the drift between clusters needs (a long, smooth
-#: bend of many cameras that plain Levenberg-Marquardt steps close only a little at a time). They make each
-#: iteration dearer and the progress per iteration larger, so the stop at a relative decrease of 1e-6 comes too
-#: early; at 1e-7 it lands where the plain adjustment does. The 100-photo walk's capture-order closing (one
-#: thread): plain 49 + 21 steps, 9.3 s; inner iterations at 1e-6: 12 steps, 4.3 s, pose AUC@5 after the final
-#: filter 0.99343 -> 0.99300 (median pose error 0.0280 -> 0.0298 deg); at 1e-7: 4.5 s, 0.99341 (0.0280 deg)
-#: (docs/experiments.md, section 50). The final filter's adjustments start at the optimum and gain nothing from them.
+#: point is re-solved on its own with the cameras held. Plain Levenberg-Marquardt took 49 steps (and 21 rejected)
+#: to close the 100-photo walk's chain over every pair, each a little; with inner iterations each step is dearer
+#: and goes further, so the stop at a relative decrease of 1e-6 comes too early, and at 1e-7 it lands where the
+#: plain adjustment does. That closing on one thread: plain 9.3 s; inner iterations at 1e-6: 12 steps, 4.3 s, pose
+#: AUC@5 after the final filter 0.99343 -> 0.99300 (median pose error 0.0280 -> 0.0298 deg); at 1e-7: 4.5 s,
+#: 0.99341 (0.0280 deg). The 1,000-photo walk's three merge passes (12 clusters, two threads) take as long either
+#: way (460.8 / 470.1 s, AUC@5 0.99436 / 0.99428) (docs/experiments.md, section 50). The final filter's
+#: adjustments start at the optimum and gain nothing from them.
 MERGE_INNER_ITERATIONS = True
 MERGE_FUNCTION_TOLERANCE = 1e-7
 
@@ -128,7 +129,7 @@ def bundle_adjust_merged(reconstruction, num_threads: int, pycolmap, filters=Non
     adjustment (the incremental mapper: 0.980). The merge's tracks cross the seams only with a tolerance of
     several pixels (``cluster_merge.SEAM_MAX_ERROR_PX``), so the loss is Cauchy's at MERGE_LOSS_SCALE_PX: a
     seam's right observations pull it shut, a wrong match with an error of many pixels weighs little; Ceres'
-    inner iterations (MERGE_INNER_ITERATIONS) close the clusters' drift in a quarter of the steps.
+    inner iterations (MERGE_INNER_ITERATIONS) halve the capture order's closing at 100 photos.
     """
     if reconstruction.num_reg_images() < 2:
         return
