@@ -96,16 +96,16 @@ def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: d
             return None
         with run.part("far pairs"):
             dropped = _without_unfit_pairs(s, chain, far, closed_db)
-        closing: dict = {}
+        closings: dict[str, dict] = {"closed": {}, "chain": {}}  # each closing's record, the kept one's recorded
         with run.part("closing"):
-            closed, records = _close(run, s, closed_db, chain, closing)
+            closed, records = _close(run, s, closed_db, chain, closings["closed"])
         with run.part("fold check"):
             scores, kept = {"closed": _verdict(s, closed, closed_db)}, "closed"
         if scores["closed"][0] or registered(closed) < registered(chain):
             # The far pairs kept fold it (or cost photos): the chain alone, adjusted and filtered over its own
             # pairs, when that is better.
             with run.part("closing"):
-                alone, alone_records = _close(run, s, chain_db, chain)
+                alone, alone_records = _close(run, s, chain_db, chain, closings["chain"])
             with run.part("fold check"):
                 scores["chain"] = _verdict(s, alone, chain_db)
             if rank(scores["chain"]) > rank(scores["closed"]):
@@ -114,7 +114,7 @@ def map_in_capture_order(run: Run, s: Reconstruction, filtered: list, details: d
         filtered.extend(records)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    _record_remap(s, "ordered", linked, far, dropped, kept, scores, closing=closing.get("merge"))
+    _record_remap(s, "ordered", linked, far, dropped, kept, scores, closing=closings[kept].get("merge"))
     return closed
 
 
